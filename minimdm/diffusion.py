@@ -156,7 +156,9 @@ def _index(buf: Tensor, t: Tensor | int, x: Tensor, clean_value: float) -> Tenso
     if t.dim() == 0:
         t = t.expand(x.shape[0])
     if t.shape != (x.shape[0],):
-        raise ValueError(f"t must be an int or a ({x.shape[0]},) tensor, got shape {tuple(t.shape)}")
+        raise ValueError(
+            f"t must be an int or a ({x.shape[0]},) tensor, got shape {tuple(t.shape)}"
+        )
     if (t < -1).any() or (t >= buf.numel()).any():
         raise ValueError(f"t must lie in [-1, {buf.numel() - 1}], got {t.min()}..{t.max()}")
     vals = torch.where(t >= 0, buf[t.clamp(min=0)], torch.full_like(buf[:1], clean_value))
@@ -195,16 +197,26 @@ def q_posterior(
     return mean, var
 
 
-def predict_x0_from_eps(schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, eps: Tensor) -> Tensor:
-    """Invert q_sample: :math:`x_0 = (x_t - \\sqrt{1-\\bar\\alpha_t}\\epsilon)/\\sqrt{\\bar\\alpha_t}`."""
+def predict_x0_from_eps(
+    schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, eps: Tensor
+) -> Tensor:
+    """Invert q_sample (Ho et al. eq. 4).
+
+    :math:`x_0 = (x_t - \\sqrt{1-\\bar\\alpha_t}\\epsilon)/\\sqrt{\\bar\\alpha_t}`.
+    """
     return (
         _index(schedule.sqrt_recip_alphas_cumprod, t, x_t, 1.0) * x_t
         - _index(schedule.sqrt_recipm1_alphas_cumprod, t, x_t, 0.0) * eps
     )
 
 
-def predict_eps_from_x0(schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, x0: Tensor) -> Tensor:
-    """The noise implied by a clean estimate: :math:`\\epsilon = (x_t - \\sqrt{\\bar\\alpha_t}x_0)/\\sqrt{1-\\bar\\alpha_t}`."""
+def predict_eps_from_x0(
+    schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, x0: Tensor
+) -> Tensor:
+    """The noise implied by a clean estimate (Ho et al. eq. 4 solved for the noise).
+
+    :math:`\\epsilon = (x_t - \\sqrt{\\bar\\alpha_t}x_0)/\\sqrt{1-\\bar\\alpha_t}`.
+    """
     return (_index(schedule.sqrt_recip_alphas_cumprod, t, x_t, 1.0) * x_t - x0) / _index(
         schedule.sqrt_recipm1_alphas_cumprod, t, x_t, 1.0
     )
@@ -248,7 +260,7 @@ def p_mean_variance(
     predicts: str = "eps",
     clip_x0: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The learned reverse step :math:`p_\\theta(x_{t-1}|x_t)`: returns ``(mean, variance, x0_hat)``.
+    """The learned reverse step :math:`p_\\theta(x_{t-1}|x_t)`: ``(mean, variance, x0_hat)``.
 
     The mean is the posterior mean with the model's :math:`\\hat x_0` plugged in; the variance is
     the posterior variance :math:`\\tilde\\beta_t` (Ho et al. §3.2).
@@ -268,7 +280,7 @@ def p_sample(
     predicts: str = "eps",
     clip_x0: float | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """One ancestral step :math:`x_{t-1} \\sim p_\\theta(x_{t-1}|x_t)`; returns ``(x_{t-1}, x0_hat)``.
+    """One ancestral step :math:`x_{t-1} \\sim p_\\theta(x_{t-1}|x_t)`: ``(x_{t-1}, x0_hat)``.
 
     At ``t = 0`` it returns the mean, without noise.
     """
@@ -287,7 +299,9 @@ def _check_inputs(
         if cond.shape[0] != shape[0]:
             raise ValueError(f"cond must have batch size {shape[0]}, got shape {tuple(cond.shape)}")
         if cond_dim is not None and cond.shape[-1] != cond_dim:
-            raise ValueError(f"cond must have shape ({shape[0]}, {cond_dim}), got {tuple(cond.shape)}")
+            raise ValueError(
+                f"cond must have shape ({shape[0]}, {cond_dim}), got {tuple(cond.shape)}"
+            )
     if x_start is not None:
         check_finite("x_start", x_start)
         if tuple(x_start.shape) != tuple(shape):
@@ -386,11 +400,14 @@ def ddim_sample(
         x0_hat, eps = _model_x0_eps(model, schedule, x, t, cond, predicts, clip_x0)
         a_t = ac[t]
         a_next = ac[t_next] if t_next >= 0 else torch.ones_like(a_t)
-        # \sigma = \eta \sqrt{(1-\bar\alpha_{next})/(1-\bar\alpha_t)} \sqrt{1-\bar\alpha_t/\bar\alpha_{next}}
+        # \sigma = \eta \sqrt{(1-\bar\alpha_{next})/(1-\bar\alpha_t)}
+        #          \sqrt{1-\bar\alpha_t/\bar\alpha_{next}}
         sigma = eta * ((1 - a_next) / (1 - a_t)).sqrt() * (1 - a_t / a_next).clamp(min=0).sqrt()
         x = a_next.sqrt() * x0_hat + (1 - a_next - sigma**2).clamp(min=0).sqrt() * eps
         if t_next >= 0 and eta > 0:
-            x = x + sigma * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+            x = x + sigma * torch.randn(
+                x.shape, generator=generator, device=x.device, dtype=x.dtype
+            )
         if hook is not None:
             x = hook(t_next, x, x0_hat)
     return x
