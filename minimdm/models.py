@@ -8,6 +8,9 @@ The same class, at a tiny size, is the denoiser of the Squ-9 toy.
 
 :class:`MLPRegressor` is the deterministic baseline: one frame in, the next frame out, trained
 with MSE. It is the one-to-one mapping that collapses multimodal futures to their mean.
+
+:class:`MVAE` is the MVAE-style conditional VAE baseline (Ling et al. 2020): a latent z drawn
+from a Gaussian prior, decoded with the previous frame into the next one.
 """
 
 from __future__ import annotations
@@ -18,7 +21,14 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor, nn
 
-__all__ = ["DenoiserConfig", "MLPDenoiser", "MLPRegressor", "timestep_embedding"]
+__all__ = [
+    "DenoiserConfig",
+    "MLPDenoiser",
+    "MLPRegressor",
+    "MVAEConfig",
+    "MVAE",
+    "timestep_embedding",
+]
 
 
 def timestep_embedding(t: Tensor, dim: int, max_period: float = 10_000.0) -> Tensor:
@@ -61,15 +71,15 @@ class MLPDenoiser(nn.Module):
     def __init__(self, config: DenoiserConfig) -> None:
         super().__init__()
         if config.depth < 2:
-            raise ValueError(f"depth must be >= 2 (one hidden and one output layer), got {config.depth}")
+            raise ValueError(
+                f"depth must be >= 2 (one hidden and one output layer), got {config.depth}"
+            )
         if config.predicts not in ("eps", "x0"):
             raise ValueError(f"predicts must be 'eps' or 'x0', got {config.predicts!r}")
         self.config = config
         self.predicts = config.predicts
         w = config.width
-        self.time_mlp = nn.Sequential(
-            nn.Linear(config.time_dim, w), nn.SiLU(), nn.Linear(w, w)
-        )
+        self.time_mlp = nn.Sequential(nn.Linear(config.time_dim, w), nn.SiLU(), nn.Linear(w, w))
         self.input = nn.Linear(config.x_dim + config.cond_dim, w)
         self.hidden = nn.ModuleList(nn.Linear(w, w) for _ in range(config.depth - 2))
         self.norms = nn.ModuleList(nn.LayerNorm(w) for _ in range(config.depth - 1))
@@ -117,3 +127,95 @@ class MLPRegressor(nn.Module):
         if cond.dim() != 2 or cond.shape[1] != self.cond_dim:
             raise ValueError(f"cond must have shape (B, {self.cond_dim}), got {tuple(cond.shape)}")
         return self.net(cond)
+
+
+@dataclass
+class MVAEConfig:
+    """Size of an :class:`MVAE`."""
+
+    x_dim: int
+    """Dimension D of one frame."""
+    cond_dim: int
+    """Dimension of the condition, the previous frame x_{f-1}."""
+    latent_dim: int = 32
+    """Size of the latent z (MVAE: 32)."""
+    width: int = 256
+    """Hidden units per layer of the encoder and the decoder."""
+    depth: int = 4
+    """Fully connected layers of the decoder including its output layer (the encoder has 3)."""
+
+
+class MVAE(nn.Module):
+    """An MVAE-style conditional VAE baseline (Ling et al. 2020), for next-frame prediction.
+
+    The encoder :math:`q_\\phi(z | x_f, x_{f-1})` gives the mean and log-variance of a small
+    Gaussian latent; the decoder :math:`p_\\theta(x_f | z, x_{f-1})` maps a latent and the previous
+    frame to the next frame, with z concatenated to the input of every layer (as in MVAE) so that
+    it cannot be ignored. Trained with reconstruction + β-KL and scheduled sampling; sampled by
+    drawing :math:`z \\sim \\mathcal N(0, I)`. Same body as the other networks (SiLU then
+    LayerNorm).
+    """
+
+    def __init__(self, config: MVAEConfig) -> None:
+        super().__init__()
+        if config.depth < 2:
+            raise ValueError(f"depth must be >= 2, got {config.depth}")
+        self.config = config
+        c, w = config, config.width
+        self.encoder = nn.Sequential(
+            nn.Linear(c.x_dim + c.cond_dim, w),
+            nn.SiLU(),
+            nn.LayerNorm(w),
+            nn.Linear(w, w),
+            nn.SiLU(),
+            nn.LayerNorm(w),
+            nn.Linear(w, 2 * c.latent_dim),
+        )
+        dims = [c.cond_dim] + [w] * (c.depth - 1)
+        self.decoder = nn.ModuleList(nn.Linear(d + c.latent_dim, w) for d in dims[:-1])
+        self.decoder_norms = nn.ModuleList(nn.LayerNorm(w) for _ in dims[:-1])
+        self.output = nn.Linear(w + c.latent_dim, c.x_dim)
+
+    def _check(self, name: str, x: Tensor, dim: int) -> None:
+        if x.dim() != 2 or x.shape[1] != dim:
+            raise ValueError(f"{name} must have shape (B, {dim}), got {tuple(x.shape)}")
+
+    def encode(self, x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
+        """Posterior parameters ``(mu, logvar)``, each (B, latent_dim)."""
+        self._check("x", x, self.config.x_dim)
+        self._check("cond", cond, self.config.cond_dim)
+        mu, logvar = self.encoder(torch.cat([x, cond], dim=-1)).chunk(2, dim=-1)
+        return mu, logvar.clamp(-20.0, 10.0)
+
+    def decode(self, z: Tensor, cond: Tensor) -> Tensor:
+        """The next frame (B, D) from a latent ``z`` (B, latent_dim) and the previous frame."""
+        self._check("z", z, self.config.latent_dim)
+        self._check("cond", cond, self.config.cond_dim)
+        h = cond
+        for layer, norm in zip(self.decoder, self.decoder_norms, strict=True):
+            h = norm(nn.functional.silu(layer(torch.cat([h, z], dim=-1))))  # (B, W)
+        return self.output(torch.cat([h, z], dim=-1))  # (B, D)
+
+    def forward(
+        self, x: Tensor, cond: Tensor, generator: torch.Generator | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Reconstruct ``x`` through the posterior: returns ``(x_hat, mu, logvar)``."""
+        mu, logvar = self.encode(x, cond)
+        eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+        z = mu + (0.5 * logvar).exp() * eps  # reparameterisation
+        return self.decode(z, cond), mu, logvar
+
+    @torch.no_grad()
+    def sample(self, cond: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Draw the next frame from the prior, :math:`z \\sim \\mathcal N(0, I)`: (B, D)."""
+        self._check("cond", cond, self.config.cond_dim)
+        z = torch.randn(
+            (cond.shape[0], self.config.latent_dim),
+            generator=generator,
+            device=cond.device,
+            dtype=cond.dtype,
+        )
+        return self.decode(z, cond)
+
+    def config_dict(self) -> dict:
+        return asdict(self.config)

@@ -1,0 +1,447 @@
+"""Checkpoints: safetensors weights with JSON metadata beside them, written atomically.
+
+A checkpoint with stem ``runs/amdm/model`` is up to three files:
+
+* ``model.safetensors`` — the weights used for sampling (the EMA weights when training kept
+  them). Its header also carries the full metadata, so this one file is a complete, consistent
+  checkpoint on its own.
+* ``model.json`` — the same metadata, readable: the training config and the config file that
+  made it, the feature layout, the skeleton, the normalizer statistics, the library version, the
+  training steps and how to rebuild the network.
+* ``model.train.safetensors`` (optional) — everything a resumed run needs: raw and EMA weights,
+  optimizer state and random-generator states, plus the metadata. It is self-contained, so a
+  crash between writing two files never mixes states.
+
+Nothing is pickled: tensors go through safetensors, everything else through JSON. Every file is
+written to a temporary file in the same folder, synced and then renamed over the old one with
+``os.replace``, so an interrupted save leaves the last good checkpoint intact.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import torch
+from safetensors import safe_open
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+from torch import Tensor, nn
+
+import minimdm
+from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+
+__all__ = [
+    "FORMAT",
+    "Checkpoint",
+    "CheckpointMismatchError",
+    "checkpoint_paths",
+    "save_checkpoint",
+    "load_checkpoint",
+    "load_train_state",
+    "model_spec",
+    "build_model",
+    "register_model_kind",
+]
+
+FORMAT = "minimdm-checkpoint/1"
+"""Format tag written into every checkpoint's metadata."""
+
+_META_KEY = "minimdm"  # safetensors header key holding the metadata JSON
+_DEFAULT_STEM = "model"  # file stem used when a folder is given
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint was made for another feature layout or skeleton than the one expected."""
+
+
+# --------------------------------------------------------------------------------------------
+# Model kinds: how to describe a network in JSON and rebuild it.
+
+
+def _regressor_spec(m: MLPRegressor) -> dict:
+    linears = [layer for layer in m.net if isinstance(layer, nn.Linear)]
+    width = linears[0].out_features if len(linears) > 1 else 0
+    return {"x_dim": m.x_dim, "cond_dim": m.cond_dim, "width": width, "depth": len(linears)}
+
+
+_BUILDERS: dict[str, Callable[[dict], nn.Module]] = {
+    "amdm": lambda c: MLPDenoiser(DenoiserConfig(**c)),
+    "mse": lambda c: MLPRegressor(**c),
+    "mvae": lambda c: MVAE(MVAEConfig(**c)),
+}
+_SPECS: list[tuple[type, str, Callable[[nn.Module], dict]]] = [
+    (MLPDenoiser, "amdm", lambda m: m.config_dict()),
+    (MLPRegressor, "mse", _regressor_spec),
+    (MVAE, "mvae", lambda m: m.config_dict()),
+]
+
+
+def register_model_kind(
+    kind: str, cls: type, build: Callable[[dict], nn.Module], spec: Callable[[nn.Module], dict]
+) -> None:
+    """Teach checkpoints a new network kind.
+
+    ``spec(model)`` returns its JSON config, ``build(config)`` rebuilds it.
+    """
+    _BUILDERS[kind] = build
+    _SPECS.insert(0, (cls, kind, spec))
+
+
+def model_spec(model: nn.Module) -> dict:
+    """``{"kind": ..., "config": {...}}``: the JSON that :func:`build_model` rebuilds from."""
+    for cls, kind, spec in _SPECS:
+        if isinstance(model, cls):
+            return {"kind": kind, "config": spec(model)}
+    known = ", ".join(c.__name__ for c, _, _ in _SPECS)
+    raise ValueError(f"model must be one of {known} (or registered), got {type(model).__name__}")
+
+
+def build_model(spec: dict) -> nn.Module:
+    """Rebuild a network from :func:`model_spec`'s output (weights not loaded)."""
+    kind = spec.get("kind")
+    if kind not in _BUILDERS:
+        raise ValueError(f"model kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
+    return _BUILDERS[kind](dict(spec["config"]))
+
+
+# --------------------------------------------------------------------------------------------
+# Paths and atomic writes.
+
+
+@dataclass(frozen=True)
+class CheckpointPaths:
+    """The files of one checkpoint."""
+
+    weights: Path
+    """``STEM.safetensors``: sampling weights plus metadata in the header."""
+    meta: Path
+    """``STEM.json``: the readable metadata."""
+    train: Path
+    """``STEM.train.safetensors``: the resumable training state."""
+
+
+def checkpoint_paths(path: str | os.PathLike) -> CheckpointPaths:
+    """The files for ``path``: a folder (stem ``model`` inside it), a stem, or one of the files."""
+    p = Path(path)
+    if p.is_dir() or str(path).endswith(os.sep):
+        p = p / _DEFAULT_STEM
+    name = p.name
+    for suffix in (".train.safetensors", ".safetensors", ".json"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    stem = p.with_name(name)
+    return CheckpointPaths(
+        weights=stem.with_name(name + ".safetensors"),
+        meta=stem.with_name(name + ".json"),
+        train=stem.with_name(name + ".train.safetensors"),
+    )
+
+
+def _write(f: BinaryIO, data: bytes) -> None:
+    """Write ``data`` to an open file (a seam for tests that simulate a crash mid-write)."""
+    f.write(data)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a synced temporary file and ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            _write(f, data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# --------------------------------------------------------------------------------------------
+# JSON and nested tensor state.
+
+
+def _jsonable(x: Any) -> Any:
+    """Turn tensors, numpy values, dataclass-likes and paths into JSON values."""
+    if isinstance(x, Tensor):
+        return x.detach().cpu().tolist()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, Path):
+        return str(x)
+    if hasattr(x, "to_dict"):
+        return _jsonable(x.to_dict())
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if x is None or isinstance(x, (bool, int, float, str)):
+        return x
+    raise TypeError(f"cannot store a {type(x).__name__} in checkpoint metadata")
+
+
+def _pack(obj: Any, tensors: dict[str, Tensor], key: str) -> Any:
+    """Replace every tensor in a nested structure by a reference into ``tensors``."""
+    if isinstance(obj, Tensor):
+        tensors[key] = obj.detach().cpu().contiguous().clone()
+        return {"__tensor__": key}
+    if isinstance(obj, dict):
+        if all(isinstance(k, str) for k in obj):
+            return {"__dict__": {k: _pack(v, tensors, f"{key}.{k}") for k, v in obj.items()}}
+        return {"__items__": [[k, _pack(v, tensors, f"{key}.{k}")] for k, v in obj.items()]}
+    if isinstance(obj, tuple):
+        return {"__tuple__": [_pack(v, tensors, f"{key}.{i}") for i, v in enumerate(obj)]}
+    if isinstance(obj, list):
+        return [_pack(v, tensors, f"{key}.{i}") for i, v in enumerate(obj)]
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    raise TypeError(f"cannot store a {type(obj).__name__} at {key!r} of the training state")
+
+
+def _unpack(obj: Any, tensors: dict[str, Tensor]) -> Any:
+    if isinstance(obj, list):
+        return [_unpack(v, tensors) for v in obj]
+    if isinstance(obj, dict):
+        if "__tensor__" in obj:
+            return tensors[obj["__tensor__"]]
+        if "__dict__" in obj:
+            return {k: _unpack(v, tensors) for k, v in obj["__dict__"].items()}
+        if "__items__" in obj:
+            return {k: _unpack(v, tensors) for k, v in obj["__items__"]}
+        if "__tuple__" in obj:
+            return tuple(_unpack(v, tensors) for v in obj["__tuple__"])
+    return obj
+
+
+def _dumps(meta: dict) -> str:
+    return json.dumps(meta, indent=1, sort_keys=True, allow_nan=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Save.
+
+
+def save_checkpoint(
+    path: str | os.PathLike,
+    model: nn.Module,
+    metadata: dict | None = None,
+    optimizer_state: dict | None = None,
+) -> CheckpointPaths:
+    """Save ``model`` and its metadata atomically; returns the files written.
+
+    Args:
+        path: a folder (files ``model.*`` inside it) or a stem such as ``checkpoints/amdm_book``.
+        model: the network to sample with (pass the EMA copy when there is one).
+        metadata: JSON-able facts about the checkpoint. By convention: ``config`` (the training
+            config), ``config_file``, ``feature_layout``, ``skeleton``, ``normalizer``,
+            ``step``, ``diffusion`` (schedule kind, T, predicts). Objects with ``to_dict``,
+            tensors and numpy arrays are converted. ``format``, ``minimdm_version`` and
+            ``model`` (kind and config, from :func:`model_spec`) are added.
+        optimizer_state: optional training state for resuming: a nested dict / list / tuple of
+            tensors and JSON values (optimizer ``state_dict``, raw weights, generator states,
+            step...). Stored in ``STEM.train.safetensors``, which is written first.
+    """
+    paths = checkpoint_paths(path)
+    meta = _jsonable(dict(metadata or {}))
+    meta.update(format=FORMAT, minimdm_version=minimdm.__version__, model=model_spec(model))
+    text = _dumps(meta)
+    if optimizer_state is not None:
+        tensors: dict[str, Tensor] = {}
+        tree = _pack(optimizer_state, tensors, "s")
+        header = {_META_KEY: text, "train_state": json.dumps(tree)}
+        _atomic_write(paths.train, st_save(tensors, metadata=header))
+    weights = {k: v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
+    _atomic_write(paths.weights, st_save(weights, metadata={_META_KEY: text}))
+    _atomic_write(paths.meta, (text + "\n").encode())
+    return paths
+
+
+# --------------------------------------------------------------------------------------------
+# Load.
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: the rebuilt network (in eval mode) and its metadata."""
+
+    model: nn.Module
+    """The network, weights loaded, in eval mode."""
+    metadata: dict
+    """Everything :func:`save_checkpoint` stored (see its docstring)."""
+    paths: CheckpointPaths
+    """The files it came from."""
+    extra: dict = field(default_factory=dict)
+    """Free room for callers (e.g. a cached decoder)."""
+
+    @property
+    def kind(self) -> str:
+        """``"amdm"``, ``"mse"``, ``"mvae"`` or a registered kind."""
+        return self.metadata["model"]["kind"]
+
+    @property
+    def step(self) -> int:
+        """Training steps the weights have seen."""
+        return int(self.metadata.get("step", 0))
+
+    @property
+    def config(self) -> dict:
+        """The training config as a dict (``minimdm.train.TrainConfig(**ckpt.config)``)."""
+        return dict(self.metadata.get("config") or {})
+
+    @property
+    def feature_layout(self) -> dict | None:
+        return self.metadata.get("feature_layout")
+
+    @property
+    def skeleton(self) -> dict | None:
+        return self.metadata.get("skeleton")
+
+    @property
+    def normalizer(self) -> dict | None:
+        return self.metadata.get("normalizer")
+
+    def schedule(self, device: torch.device | str = "cpu"):
+        """The :class:`~minimdm.diffusion.NoiseSchedule` the denoiser was trained with."""
+        from minimdm.diffusion import NoiseSchedule
+
+        d = self.metadata.get("diffusion")
+        if not d:
+            raise ValueError(
+                f"checkpoint {self.paths.weights} is not a diffusion model ({self.kind})"
+            )
+        return NoiseSchedule(d["schedule"], int(d["T"]), device=device)
+
+
+def _read_header_meta(path: Path) -> dict:
+    with safe_open(str(path), framework="pt") as f:
+        header = f.metadata() or {}
+    if _META_KEY not in header:
+        raise ValueError(f"{path} is not a minimdm checkpoint (no '{_META_KEY}' metadata)")
+    return json.loads(header[_META_KEY])
+
+
+def _canonical(x: Any) -> Any:
+    return json.loads(json.dumps(_jsonable(x), sort_keys=True))
+
+
+def _first_difference(a: Any, b: Any, where: str = "") -> str | None:
+    """Where two JSON values first differ (floats compared to 1e-6), or None."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if k not in a or k not in b:
+                return f"{where}.{k}: only in {'the checkpoint' if k in a else 'the expected'}"
+            d = _first_difference(a[k], b[k], f"{where}.{k}")
+            if d:
+                return d
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return f"{where}: length {len(a)} vs {len(b)}"
+        for i, (u, v) in enumerate(zip(a, b, strict=True)):
+            d = _first_difference(u, v, f"{where}[{i}]")
+            if d:
+                return d
+        return None
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool):
+        return None if math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-6) else f"{where}: {a} vs {b}"
+    return None if a == b else f"{where}: {a!r} vs {b!r}"
+
+
+def _summary(x: Any, limit: int = 300) -> str:
+    text = json.dumps(x, sort_keys=True, separators=(",", ":"))
+    return text if len(text) <= limit else text[:limit] + "...}"
+
+
+def _check_expected(what: str, stored: Any, expected: Any, path: Path) -> None:
+    if expected is None:
+        return
+    exp = _canonical(expected)
+    if stored is None:
+        raise CheckpointMismatchError(
+            f"checkpoint {path} records no {what}, but the expected {what} is {_summary(exp)}"
+        )
+    diff = _first_difference(stored, exp)
+    if diff:
+        raise CheckpointMismatchError(
+            f"checkpoint {path} was made for another {what}.\n"
+            f"  checkpoint's {what}: {_summary(stored)}\n"
+            f"  expected {what}:     {_summary(exp)}\n"
+            f"  first difference (checkpoint vs expected) at {diff.lstrip('.')}"
+        )
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    expected_layout: Any = None,
+    expected_skeleton: Any = None,
+    device: torch.device | str = "cpu",
+) -> Checkpoint:
+    """Load a checkpoint written by :func:`save_checkpoint` and rebuild its network.
+
+    Args:
+        path: the folder, the stem or any of the checkpoint's files.
+        expected_layout: the feature layout the caller will feed (a ``FeatureLayout`` or its
+            ``to_dict()``); if the checkpoint's differs, raise :class:`CheckpointMismatchError`
+            naming both.
+        expected_skeleton: likewise for the skeleton.
+        device: where to put the network.
+
+    The metadata are read from the weights file's header, which is written in one atomic step
+    with the weights; the JSON file beside it is the readable copy.
+    """
+    paths = checkpoint_paths(path)
+    if not paths.weights.exists():
+        raise FileNotFoundError(f"no checkpoint at {path}: expected the file {paths.weights}")
+    meta = _read_header_meta(paths.weights)
+    if meta.get("format") != FORMAT:
+        raise ValueError(
+            f"checkpoint {paths.weights} has format {meta.get('format')!r}, expected {FORMAT!r}"
+        )
+    if paths.meta.exists():
+        try:
+            beside = json.loads(paths.meta.read_text())
+        except json.JSONDecodeError:
+            beside = None
+        if beside != meta:
+            warnings.warn(
+                f"{paths.meta} does not match the metadata inside {paths.weights} "
+                "(an interrupted save?); using the weights file's metadata",
+                stacklevel=2,
+            )
+    _check_expected("feature layout", meta.get("feature_layout"), expected_layout, paths.weights)
+    _check_expected("skeleton", meta.get("skeleton"), expected_skeleton, paths.weights)
+    model = build_model(meta["model"])
+    state = st_load(paths.weights.read_bytes())
+    model.load_state_dict(state, strict=True)
+    model.to(device).eval()
+    return Checkpoint(model=model, metadata=meta, paths=paths)
+
+
+def load_train_state(path: str | os.PathLike) -> tuple[dict, dict]:
+    """Read ``STEM.train.safetensors``: returns ``(metadata, training_state)``.
+
+    ``training_state`` is the nested structure given to :func:`save_checkpoint` as
+    ``optimizer_state``, with its tensors restored on the CPU.
+    """
+    paths = checkpoint_paths(path)
+    if not paths.train.exists():
+        raise FileNotFoundError(f"no training state at {path}: expected the file {paths.train}")
+    with safe_open(str(paths.train), framework="pt") as f:
+        header = f.metadata() or {}
+    if _META_KEY not in header or "train_state" not in header:
+        raise ValueError(f"{paths.train} is not a minimdm training state")
+    tensors = st_load(paths.train.read_bytes())
+    return json.loads(header[_META_KEY]), _unpack(json.loads(header["train_state"]), tensors)

@@ -1,0 +1,292 @@
+"""Training loop, scheduled sampling and checkpoints on tiny configs with synthetic features."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from minimdm import checkpoint as ckpt_mod
+from minimdm.checkpoint import (
+    CheckpointMismatchError,
+    load_checkpoint,
+    load_train_state,
+    save_checkpoint,
+)
+from minimdm.diffusion import NoiseSchedule, predict_x0_from_eps
+from minimdm.features import FeatureLayout
+from minimdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
+from minimdm.skeleton import Skeleton
+from minimdm.train import (
+    TrainConfig,
+    build_network,
+    load_config,
+    make_windows,
+    student_probability,
+    train_amdm,
+    window_loss,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+D = 8
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny networks run fastest on one thread (and don't fight other processes for cores)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def synthetic_features(n_clips: int = 3, frames: int = 120, seed: int = 0) -> list[np.ndarray]:
+    """Smooth multi-sine clips, roughly unit scale, like normalized motion features."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)[:, None]
+    return [
+        np.sin(t * rng.uniform(0.05, 0.3, size=(1, D)) + rng.uniform(0, 6, size=(1, D))).astype(
+            np.float32
+        )
+        for _ in range(n_clips)
+    ]
+
+
+def tiny(**kw) -> TrainConfig:
+    base = dict(
+        width=32,
+        depth=3,
+        time_dim=16,
+        T=8,
+        batch_size=16,
+        total_steps=6,
+        rollout=3,
+        teacher_steps=2,
+        ramp_steps=2,
+        eval_interval=0,
+        ckpt_interval=0,
+        log_interval=1,
+        eval_windows=32,
+        lr=1e-3,
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_loss_falls_on_a_tiny_config(tmp_path):
+    cfg = tiny(total_steps=150, teacher_steps=50, ramp_steps=50, eval_interval=150, log_interval=10)
+    result = train_amdm(cfg, tmp_path, synthetic_features(), progress=False)
+    losses = [h["loss"] for h in result.history if "loss" in h]
+    assert result.steps == 150
+    assert np.mean(losses[-3:]) < 0.7 * losses[0]
+    assert result.history[-1]["eval_loss"] < losses[0]
+    assert (tmp_path / "model.safetensors").exists() and (tmp_path / "log.jsonl").exists()
+
+
+class Interrupt(Exception):
+    pass
+
+
+@pytest.mark.parametrize("kind", ["amdm", "mse", "mvae"])
+def test_resume_gives_the_same_next_step(tmp_path, kind):
+    """k + 1 uninterrupted steps == k steps, a crash, a resume, and 1 more step (bit for bit)."""
+    k = 5
+    cfg = tiny(model_kind=kind, total_steps=k + 1, ckpt_interval=k)
+    feats = synthetic_features()
+    train_amdm(cfg, tmp_path / "full", feats, progress=False)
+
+    def crash(step, record):
+        if step == k:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        train_amdm(cfg, tmp_path / "cut", feats, progress=False, callback=crash)
+    assert load_train_state(tmp_path / "cut")[1]["step"] == k
+    resumed = train_amdm(cfg, tmp_path / "cut", feats, progress=False)
+    assert resumed.steps == k + 1
+    _, a = load_train_state(tmp_path / "full")
+    _, b = load_train_state(tmp_path / "cut")
+    for name in ("model", "ema"):
+        for key in a[name]:
+            assert torch.equal(a[name][key], b[name][key]), (name, key)
+    for pid, st in a["optimizer"]["state"].items():
+        for key, v in st.items():
+            assert torch.equal(v, b["optimizer"]["state"][pid][key])
+    assert torch.equal(a["generator"], b["generator"])
+    # the log of the resumed run has each step once
+    steps = [r["step"] for r in resumed.history if "loss" in r]
+    assert steps == [k + 1]
+    # a resumed run with another model config is refused, naming the difference
+    with pytest.raises(ValueError, match="width"):
+        train_amdm(tiny(model_kind=kind, width=48, total_steps=k + 2), tmp_path / "cut", feats)
+
+
+def test_student_probability_schedule():
+    cfg = tiny(teacher_steps=100, ramp_steps=50)
+    assert [student_probability(cfg, s) for s in (0, 50, 99)] == [0.0, 0.0, 0.0]
+    assert 0.0 < student_probability(cfg, 110) < 1.0
+    assert student_probability(cfg, 124) == pytest.approx(0.5)
+    assert student_probability(cfg, 149) == 1.0
+    assert student_probability(cfg, 10_000) == 1.0
+    assert student_probability(tiny(teacher_steps=3, ramp_steps=0), 3) == 1.0
+
+
+class SpyRegressor(MLPRegressor):
+    """Records every condition it is given and every prediction it makes."""
+
+    def __init__(self):
+        super().__init__(D, D, width=16, depth=2)
+        self.conds, self.outs = [], []
+
+    def forward(self, cond):
+        out = super().forward(cond)
+        self.conds.append(cond.detach().clone())
+        self.outs.append(out.detach().clone())
+        return out
+
+
+class SpyDenoiser(MLPDenoiser):
+    def __init__(self, predicts="eps"):
+        super().__init__(DenoiserConfig(D, D, width=16, depth=2, time_dim=8, predicts=predicts))
+        self.calls = []
+
+    def forward(self, x_t, t, cond=None):
+        out = super().forward(x_t, t, cond)
+        self.calls.append((x_t.detach().clone(), t.clone(), cond.detach().clone(), out.detach()))
+        return out
+
+
+def test_student_forcing_feeds_the_models_own_prediction():
+    windows = make_windows(synthetic_features(), 3)[:32]  # (32, 4, D)
+    g = torch.Generator().manual_seed(0)
+    spy = SpyRegressor()
+    window_loss(spy, windows, 1.0, g, kind="mse")
+    assert len(spy.conds) == 3
+    assert torch.equal(spy.conds[0], windows[:, 0])
+    assert torch.equal(spy.conds[1], spy.outs[0])  # frame 2 is conditioned on prediction 1
+    assert torch.equal(spy.conds[2], spy.outs[1])
+    assert not torch.allclose(spy.conds[1], windows[:, 1])
+
+    spy = SpyRegressor()
+    window_loss(spy, windows, 0.0, g, kind="mse")  # teacher forcing: one batch of GT frames
+    assert len(spy.conds) == 1
+    assert torch.equal(spy.conds[0], windows[:, :-1].reshape(-1, D))
+
+    # A-MDM: the next condition is x0_hat at the drawn noise level, clamped
+    sched = NoiseSchedule("cosine", 8)
+    spy = SpyDenoiser()
+    window_loss(spy, windows, 1.0, g, kind="amdm", schedule=sched, clip_x0=2.0)
+    x_t, t, _, eps = spy.calls[0]
+    x0_hat = predict_x0_from_eps(sched, x_t, t, eps).clamp(-2, 2)
+    assert torch.allclose(spy.calls[1][2], x0_hat, atol=1e-6)
+
+    # an intermediate probability mixes the two per sample
+    spy = SpyRegressor()
+    big = make_windows(synthetic_features(frames=400), 2)[:1000]
+    _, info = window_loss(spy, big, 0.3, g, kind="mse")
+    from_model = (spy.conds[1] == spy.outs[0]).all(1).float().mean()
+    assert 0.25 < float(from_model) < 0.35
+    assert info["student_frac"] == pytest.approx(float(from_model))
+
+
+def small_model():
+    torch.manual_seed(0)
+    return MLPDenoiser(DenoiserConfig(D, D, width=16, depth=3, time_dim=8))
+
+
+def skel(n: int = 3, names=None) -> Skeleton:
+    names = names or [f"j{i}" for i in range(n)]
+    return Skeleton(
+        names, [-1] + list(range(n - 1)), np.ones((n, 3)) * 0.1, foot_joints=[names[-1]]
+    )
+
+
+def test_checkpoint_round_trip_without_pickle(tmp_path, monkeypatch):
+    m = small_model()
+    layout = {"dim": D, "slices": {"root": [0, 3], "pos": [3, 8]}}
+    meta = {"step": 7, "feature_layout": layout, "skeleton": skel(), "normalizer": {"mean": [0.0]}}
+    opt = torch.optim.Adam(m.parameters())
+    m(torch.randn(2, D), torch.zeros(2, dtype=torch.long), torch.randn(2, D)).sum().backward()
+    opt.step()
+    state = {"optimizer": opt.state_dict(), "gen": torch.Generator().manual_seed(3).get_state()}
+    save_checkpoint(tmp_path / "ck", m, meta, optimizer_state=state)
+
+    def no_torch_load(*a, **k):
+        raise AssertionError("torch.load must not be used")
+
+    monkeypatch.setattr(torch, "load", no_torch_load)
+    ck = load_checkpoint(
+        tmp_path / "ck.safetensors", expected_layout=layout, expected_skeleton=skel()
+    )
+    assert ck.kind == "amdm" and ck.step == 7
+    assert ck.metadata["minimdm_version"]
+    for k, v in m.state_dict().items():
+        assert torch.equal(ck.model.state_dict()[k], v)
+    _, st = load_train_state(tmp_path / "ck")
+    opt2 = torch.optim.Adam(small_model().parameters())
+    opt2.load_state_dict(st["optimizer"])  # int keys and tuples (betas) survive JSON
+    assert opt2.state_dict()["param_groups"][0]["betas"] == (0.9, 0.999)
+    assert torch.equal(st["gen"], state["gen"])
+
+
+def test_checkpoint_mismatch_names_both(tmp_path):
+    m = small_model()
+    layout = FeatureLayout(("j0", "j1", "j2"))
+    save_checkpoint(tmp_path, m, {"feature_layout": layout, "skeleton": skel(3)})
+    with pytest.raises(CheckpointMismatchError) as e:
+        load_checkpoint(tmp_path, expected_layout=FeatureLayout(("j0", "j1")))
+    msg = str(e.value)
+    assert "feature layout" in msg and '"dim":39' in msg and '"dim":27' in msg
+    other = skel(3, names=["hips", "knee", "toe"])
+    with pytest.raises(CheckpointMismatchError) as e:
+        load_checkpoint(tmp_path, expected_skeleton=other)
+    msg = str(e.value)
+    assert "skeleton" in msg and '"j0"' in msg and '"hips"' in msg
+    load_checkpoint(tmp_path, expected_layout=layout, expected_skeleton=skel(3))  # match: fine
+
+
+def test_interrupted_save_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+    good = small_model()
+    save_checkpoint(tmp_path, good, {"step": 1}, optimizer_state={"step": 1})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def crash_mid_write(f, data):
+        f.write(data[: len(data) // 2])
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ckpt_mod, "_write", crash_mid_write)
+    newer = MLPDenoiser(DenoiserConfig(D, D, width=16, depth=3, time_dim=8))
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(tmp_path, newer, {"step": 2}, optimizer_state={"step": 2})
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert after == before  # nothing changed, no temporary files left
+    ck = load_checkpoint(tmp_path)
+    assert ck.step == 1
+    for k, v in good.state_dict().items():
+        assert torch.equal(ck.model.state_dict()[k], v)
+
+
+def test_configs_load_and_build(tmp_path):
+    files = sorted((ROOT / "configs").glob("*.yaml"))
+    assert {"amdm_book.yaml", "amdm_paper.yaml", "mse_book.yaml", "mvae_book.yaml"} <= {
+        f.name for f in files
+    }
+    for f in files:
+        cfg = load_config(f)
+        assert cfg.config_file.endswith(f.name)
+        net = build_network(cfg, 183)
+        assert isinstance(net, nn.Module)
+    paper = load_config(ROOT / "configs" / "amdm_paper.yaml")
+    assert (paper.width, paper.depth, paper.T) == (1024, 10, 40)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("width: 64\nwidht: 3\n")
+    with pytest.raises(ValueError, match="widht"):
+        load_config(bad)
+    odd = tmp_path / "odd.yaml"
+    odd.write_text("lr: 5e-4\nfps: 30\n")  # YAML 1.1 reads 5e-4 as a string
+    cfg = load_config(odd)
+    assert cfg.lr == 5e-4 and isinstance(cfg.fps, float)
+    odd.write_text("width: wide\n")
+    with pytest.raises(ValueError, match="width must be int, got 'wide'"):
+        load_config(odd)
