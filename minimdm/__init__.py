@@ -1,3 +1,47 @@
-"""minimdm: auto-regressive motion diffusion, from DDPM to A-MDM, AAMDM and CAMDM."""
+"""minimdm: auto-regressive motion diffusion, from DDPM to A-MDM, AAMDM and CAMDM.
+
+The two names most readers need first::
+
+    import minimdm
+    ckpt = minimdm.pretrained("amdm_book")          # the shipped A-MDM checkpoint
+    motion = minimdm.rollout(ckpt, x0, n_frames=300)  # sample the future of initial states x0
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
 
 __version__ = "0.1.0"
+
+__all__ = ["__version__", "pretrained", "rollout", "CHECKPOINT_DIR"]
+
+CHECKPOINT_DIR = Path(
+    os.environ.get("MINIMDM_CHECKPOINTS", Path(__file__).resolve().parent.parent / "checkpoints")
+)
+"""Where :func:`pretrained` looks: ``$MINIMDM_CHECKPOINTS`` or the checkout's ``checkpoints/``."""
+
+
+def pretrained(name: str, device: str = "cpu"):
+    """Load a shipped checkpoint by name, e.g. ``"amdm_book"``, ``"mse_book"``, ``"mvae_book"``.
+
+    Each lives in ``checkpoints/<name>/`` and names the config and command that made it.
+    """
+    from minimdm.checkpoint import load_checkpoint
+
+    folder = CHECKPOINT_DIR / name
+    if not (folder / "model.safetensors").exists():
+        have = sorted(p.parent.name for p in CHECKPOINT_DIR.glob("*/model.safetensors"))
+        raise FileNotFoundError(
+            f"no shipped checkpoint named {name!r} in {CHECKPOINT_DIR}; available: {have}. "
+            f"Make it with: minimdm train configs/{name}.yaml"
+        )
+    return load_checkpoint(folder, device=device)
+
+
+def __getattr__(name: str):
+    if name == "rollout":  # imported lazily: `import minimdm` stays light
+        from minimdm.sampling import rollout
+
+        return rollout
+    raise AttributeError(f"module 'minimdm' has no attribute {name!r}")

@@ -389,6 +389,7 @@ def train_amdm(
     eval_fn: Callable[[nn.Module, int], dict[str, float]] | None = None,
     callback: Callable[[int, dict[str, float]], None] | None = None,
     num_threads: int | None = None,
+    metadata: dict[str, Any] | None = None,
 ) -> TrainResult:
     """Train ``config.model_kind`` with scheduled sampling; checkpoints go to ``out_dir``.
 
@@ -410,12 +411,14 @@ def train_amdm(
             finished steps); raising from it stops the run, e.g. to simulate an interruption.
         num_threads: torch CPU threads during the run (None: leave as is). On a shared 2-core
             machine 1 thread trained the book config 3-10x faster than 2.
+        metadata: extra JSON-able facts stored in the checkpoint, e.g. the ``command`` that
+            reproduces it (the CLI records it).
     """
     old_threads = torch.get_num_threads()
     if num_threads is not None:
         torch.set_num_threads(num_threads)
     try:
-        args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback)
+        args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback, metadata)
         return _train(config, out_dir, features, *args)
     finally:
         torch.set_num_threads(old_threads)
@@ -432,6 +435,7 @@ def _train(
     progress: bool,
     eval_fn: Callable[[nn.Module, int], dict[str, float]] | None,
     callback: Callable[[int, dict[str, float]], None] | None,
+    metadata: dict[str, Any] | None,
 ) -> TrainResult:
     out_dir = Path(out_dir)
     device = torch.device(config.device)
@@ -471,6 +475,7 @@ def _train(
         step = int(state["step"])
 
     metadata_base = {
+        **(metadata or {}),
         "config": asdict(config),
         "config_file": config.config_file,
         "feature_layout": layout,

@@ -1,0 +1,223 @@
+"""The ``minimdm`` command line: train, sample and evaluate.
+
+::
+
+    minimdm train configs/amdm_book.yaml                 # -> checkpoints/amdm_book/
+    minimdm sample --checkpoint checkpoints/amdm_book --frames 300 --out walk.gif
+    minimdm eval --checkpoint checkpoints/amdm_book --json
+
+``train`` resumes from the output folder's training state when there is one, so an
+interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
+``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
+``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["main"]
+
+CHECKPOINTS = Path(__file__).resolve().parent.parent / "checkpoints"
+"""Where shipped checkpoints live in a source checkout (``minimdm.pretrained`` looks here)."""
+
+
+def _overrides(pairs: list[str]) -> dict:
+    """``["T=5", "width=256"]`` -> ``{"T": 5, "width": 256}`` (values parsed as YAML)."""
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set expects KEY=VALUE, got {pair!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import dataclasses
+    import shlex
+
+    from minimdm.train import TrainConfig, load_config, train_amdm
+
+    config = load_config(args.config)
+    changes = _overrides(args.set or [])
+    if args.steps is not None:
+        changes["total_steps"] = args.steps
+    if args.device is not None:
+        changes["device"] = args.device
+    unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(TrainConfig)})
+    if unknown:
+        raise ValueError(f"--set: unknown config keys {unknown}")
+    config = TrainConfig(**{**dataclasses.asdict(config), **changes})
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    command = ["minimdm", "train", Path(args.config).as_posix()]
+    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
+    if args.out:
+        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
+    result = train_amdm(
+        config,
+        out,
+        resume=not args.restart,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": " ".join(command)},
+    )
+    summary = {
+        "checkpoint": str(result.checkpoint.paths.weights),
+        "steps": result.steps,
+        "seconds": round(result.seconds, 1),
+        "steps_per_second": round(result.steps_per_second, 2),
+        "eval_loss": next(
+            (r["eval_loss"] for r in reversed(result.history) if "eval_loss" in r), None
+        ),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+def _parse_start(text: str) -> tuple[str, int]:
+    name, _, frame = text.rpartition(":")
+    if not name:
+        return text, 0
+    try:
+        return name, int(frame)
+    except ValueError:
+        return text, 0
+
+
+def _cmd_sample(args: argparse.Namespace) -> int:
+    from minimdm import data, evaluation, features, viz
+    from minimdm.checkpoint import load_checkpoint
+    from minimdm.sampling import rollout
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".npz", ".bvh", ".gif", ".mp4"):
+        raise SystemExit(f"--out must end in .npz, .bvh, .gif or .mp4, got {out.name!r}")
+    if args.frames < 1:
+        raise SystemExit(f"--frames must be >= 1, got {args.frames}")
+    ckpt = load_checkpoint(args.checkpoint, device=args.device)
+    name, frame = _parse_start(args.start)
+    state = evaluation.initial_state(ckpt, name, frame)
+    g = torch.Generator(device=args.device).manual_seed(args.seed)
+    roll = rollout(
+        ckpt,
+        state.features,
+        args.frames,
+        n_samples=args.samples,
+        steps=args.steps,
+        generator=g,
+        start_pose=state.start_pose,
+        device=args.device,
+        progress=not args.quiet,
+    )
+    pos = roll.positions[0].numpy()  # (K, F, J, 3)
+    feats = roll.features[0].numpy()  # (K, F, D)
+    skeleton = evaluation.checkpoint_skeleton(ckpt)
+    if out.suffix.lower() == ".npz":
+        squeeze = args.samples == 1
+        np.savez_compressed(
+            out,
+            positions=pos[0] if squeeze else pos,
+            features=feats[0] if squeeze else feats,
+            parents=np.asarray(skeleton.parents),
+            joint_names=np.asarray(skeleton.names),
+            fps=np.asarray(ckpt.config.get("fps", 30.0)),
+        )
+    elif out.suffix.lower() == ".bvh":
+        for k in range(args.samples):
+            path = out if args.samples == 1 else out.with_name(f"{out.stem}_{k}{out.suffix}")
+            sp = features.StartPose(state.start_pose.xy, state.start_pose.heading)
+            clip = features.decode_clip(
+                torch.as_tensor(feats[k]), sp, skeleton, fps=ckpt.config.get("fps", 30.0)
+            )
+            data.save_bvh(path, clip)
+    else:
+        labels = [f"sample {k}" for k in range(args.samples)]
+        viz.animate(list(pos), skeleton, labels=labels, out=out)
+    print(json.dumps({"out": str(out), "frames": args.frames, "samples": args.samples}))
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from minimdm import evaluation
+    from minimdm.checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(args.checkpoint, device=args.device)
+    protocol = evaluation.Protocol(
+        n_states=args.states, n_samples=args.samples, seeds=tuple(range(args.seeds))
+    )
+    table = evaluation.table1(
+        {Path(args.checkpoint).name: ckpt}, protocol, steps=args.steps, device=args.device
+    )
+    row = next(iter(table.values()))
+    if args.json:
+        cells = {k: {"mean": round(m, 4), "std": round(sd, 4)} for k, (m, sd) in row.items()}
+        info = {"checkpoint": str(args.checkpoint), "protocol": protocol.to_dict()}
+        print(json.dumps({**info, "steps": args.steps, "unit": "cm", **cells}))
+    else:
+        print(evaluation.format_table(table))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``minimdm`` command."""
+    p = argparse.ArgumentParser(prog="minimdm", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    t = sub.add_parser("train", help="train a model from a YAML config (resumes if it can)")
+    t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm_book.yaml")
+    t.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
+    t.add_argument("--steps", type=int, help="override total_steps")
+    t.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
+    )
+    t.add_argument("--device", help="override the config's device (cpu, cuda)")
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    t.add_argument("--restart", action="store_true", help="ignore an existing training state")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(fn=_cmd_train)
+
+    s = sub.add_parser("sample", help="roll a trained model out and save the motion")
+    s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
+    s.add_argument("--frames", type=int, required=True, help="frames to generate")
+    s.add_argument("--out", required=True, help="output .npz, .bvh, .gif or .mp4")
+    s.add_argument("--samples", type=int, default=1, help="futures from the start pose")
+    s.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
+    s.add_argument("--start", default="walk", help="start clip[:frame], e.g. run:10")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--device", default="cpu")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(fn=_cmd_sample)
+
+    e = sub.add_parser("eval", help="the Table 1 metrics of A-MDM §7.3")
+    e.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
+    e.add_argument("--json", action="store_true", help="print one JSON object")
+    e.add_argument("--states", type=int, default=10, help="fixed initial states")
+    e.add_argument("--samples", type=int, default=50, help="samples per initial state")
+    e.add_argument("--seeds", type=int, default=3, help="repeated seeds (mean ± std)")
+    e.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
+    e.add_argument("--device", default="cpu")
+    e.set_defaults(fn=_cmd_eval)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``minimdm`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"minimdm {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

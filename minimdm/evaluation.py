@@ -1,0 +1,416 @@
+"""The evaluation protocol of A-MDM §7.3 on the DeepMimic clips: Tables 1-4 and drift.
+
+* **Table 1, random sampling.** ``n_states`` fixed initial states drawn uniformly from the
+  training clips (a fixed seed picks them); from each, ``n_samples`` futures of ``apd_frames``
+  frames. APD over all of them, ADE/FDE over their first ``ade_frames`` frames against the
+  ground-truth continuation of that state; foot sliding, bone error, joint acceleration and
+  foot penetration over all frames. Each metric is averaged over the states; the whole is
+  repeated for every seed and reported as mean ± std (:func:`evaluate`).
+* **Table 2, motion continuation.** The initial states are taken from the last 30 frames of
+  every clip as recorded (loops not unrolled), so the models must go on past the end of the
+  data; there is no ground truth, so no ADE (:func:`continuation_states`).
+* **Tables 3/4, denoising steps.** Models trained with different T, APD, ADE, FS and the
+  ms/frame of sampling measured in the same run (:func:`time_per_frame`).
+* **Drift.** Bone error and root height over a long rollout, per window (:func:`drift`).
+
+The dataset's own row (:func:`dataset_row`) gives the targets for Jnt.Accel (closer is better)
+and the floor of FS and penetration that the measurement itself produces.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from minimdm import metrics
+from minimdm.checkpoint import Checkpoint
+from minimdm.data import MotionDataset, load_clips
+from minimdm.features import StartPose, encode, start_pose_of
+from minimdm.sampling import rollout
+from minimdm.skeleton import Skeleton
+
+__all__ = [
+    "Protocol",
+    "InitialState",
+    "checkpoint_skeleton",
+    "checkpoint_clips",
+    "initial_state",
+    "random_states",
+    "continuation_states",
+    "evaluate",
+    "dataset_row",
+    "table1",
+    "table2",
+    "time_per_frame",
+    "drift",
+    "format_table",
+    "read_results",
+]
+
+TABLE1_COLUMNS = ("APD", "ADE", "FDE", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist")
+TABLE2_COLUMNS = ("APD", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist")
+
+
+@dataclass
+class Protocol:
+    """How many states, samples, frames and seeds an evaluation uses (A-MDM §7.3)."""
+
+    n_states: int = 10
+    """Fixed initial states (drawn once with ``state_seed``)."""
+    n_samples: int = 50
+    """Futures per initial state (the paper: 50)."""
+    apd_frames: int = 150
+    """Frames per sample for APD and the quality metrics (the paper: 150)."""
+    ade_frames: int = 60
+    """Frames compared with the ground truth for ADE/FDE (the paper: 60)."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Sampling seeds; metrics are reported as mean ± std over them."""
+    state_seed: int = 0
+    """Seed that picks the initial states."""
+
+    def __post_init__(self) -> None:
+        for name in ("n_states", "n_samples", "apd_frames", "ade_frames"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.n_samples < 2:
+            raise ValueError(f"n_samples must be >= 2 for APD, got {self.n_samples}")
+        if self.ade_frames > self.apd_frames:
+            raise ValueError(
+                f"ade_frames ({self.ade_frames}) must be <= apd_frames ({self.apd_frames})"
+            )
+        self.seeds = tuple(int(s) for s in self.seeds)
+        if not self.seeds:
+            raise ValueError("seeds must hold at least one seed")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class InitialState:
+    """One initial state x_0 and where it came from."""
+
+    clip: str
+    """Name of the source clip."""
+    frame: int
+    """Index of the clip frame that x_0 describes."""
+    features: Tensor
+    """(D,) x_0 in feature units (``features.encode``)."""
+    start_pose: StartPose
+    """Root ground position and heading at that frame (decoding starts there)."""
+    reference: np.ndarray | None = field(default=None, repr=False)
+    """(F_ref, J, 3) ground-truth positions of the frames after it, or None."""
+
+
+def checkpoint_skeleton(ckpt: Checkpoint) -> Skeleton:
+    """The skeleton a checkpoint was trained on (stored in its metadata)."""
+    if ckpt.skeleton is None:
+        raise ValueError(f"checkpoint {ckpt.paths.weights} records no skeleton")
+    return Skeleton.from_dict(ckpt.skeleton)
+
+
+def checkpoint_clips(ckpt: Checkpoint | None = None, unrolled: bool = True) -> MotionDataset:
+    """The clips a checkpoint was trained on, as it saw them (fps, loop unrolling)."""
+    cfg = ckpt.config if ckpt is not None else {}
+    data = ckpt.metadata.get("data", {}) if ckpt is not None else {}
+    names = data.get("clips") or cfg.get("clips")
+    loop = cfg.get("loop_frames", 150) if unrolled else None
+    return load_clips(fps=cfg.get("fps", 30.0), loop_frames=loop, names=names)
+
+
+def _state(clip, feats: Tensor, frame: int, ref_frames: int) -> InitialState:
+    """The state describing clip frame ``frame`` (feature row ``frame - 1``)."""
+    if not 1 <= frame < clip.n_frames:
+        raise ValueError(f"frame must lie in [1, {clip.n_frames - 1}] for clip {clip.name!r}")
+    sp = start_pose_of(clip, frame)
+    ref = clip.positions[frame + 1 : frame + 1 + ref_frames] if ref_frames else None
+    return InitialState(clip.name, frame, feats[frame - 1], sp, ref)
+
+
+def initial_state(
+    ckpt: Checkpoint | None, clip: str, frame: int = 0, ref_frames: int = 0
+) -> InitialState:
+    """The initial state at ``frame`` of ``clip`` (frame 0 is taken as frame 1: it has no
+    velocity), with ``ref_frames`` frames of ground truth after it when the clip has them."""
+    dataset = checkpoint_clips(ckpt)
+    c = dataset[clip]
+    return _state(c, encode(c), max(1, frame), ref_frames)
+
+
+def random_states(
+    dataset: MotionDataset, n: int, ref_frames: int = 60, seed: int = 0
+) -> list[InitialState]:
+    """``n`` initial states drawn uniformly over every frame that has ``ref_frames`` after it."""
+    feats = {c.name: encode(c) for c in dataset}
+    pool = [(c, f) for c in dataset for f in range(1, c.n_frames - ref_frames)]
+    if len(pool) < n:
+        raise ValueError(f"n must be <= {len(pool)} (frames with {ref_frames} after them), got {n}")
+    pick = np.random.default_rng(seed).choice(len(pool), size=n, replace=False)
+    return [_state(pool[i][0], feats[pool[i][0].name], pool[i][1], ref_frames) for i in pick]
+
+
+def continuation_states(
+    dataset: MotionDataset, per_clip: int = 1, last: int = 30, seed: int = 0
+) -> list[InitialState]:
+    """Table 2: ``per_clip`` states from the last ``last`` frames of every clip (no reference)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for c in dataset:
+        lo = max(1, c.n_frames - last)
+        frames = rng.choice(np.arange(lo, c.n_frames), size=min(per_clip, c.n_frames - lo))
+        feats = encode(c)
+        out += [_state(c, feats, int(f), 0) for f in sorted(frames)]
+    return out
+
+
+def _stack_start(states: Sequence[InitialState]) -> StartPose:
+    xy = torch.stack([torch.as_tensor(s.start_pose.xy, dtype=torch.float64) for s in states])
+    h = torch.stack([torch.as_tensor(s.start_pose.heading, dtype=torch.float64) for s in states])
+    return StartPose(xy, h)
+
+
+def _foot_offset(dataset: MotionDataset, skeleton: Skeleton) -> list[float]:
+    pos = np.concatenate([c.positions for c in dataset])  # (sum F, J, 3)
+    return metrics.foot_contact_offsets(pos, skeleton.foot_indices)
+
+
+def evaluate(
+    ckpt: Checkpoint,
+    states: Sequence[InitialState],
+    protocol: Protocol,
+    *,
+    steps: int | None = None,
+    foot_offset: Sequence[float] | None = None,
+    device: torch.device | str = "cpu",
+) -> dict[str, tuple[float, float]]:
+    """Every metric of ``ckpt`` from ``states``: ``{name: (mean, std over seeds)}``.
+
+    ADE/FDE are measured for states that carry a reference of at least ``ade_frames`` frames.
+    """
+    if not states:
+        raise ValueError("states must hold at least one initial state")
+    sk = checkpoint_skeleton(ckpt)
+    if foot_offset is None:
+        foot_offset = _foot_offset(checkpoint_clips(ckpt), sk)
+    ref_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    x0 = torch.stack([s.features for s in states])  # (C, D)
+    start = _stack_start(states)
+    P = protocol
+
+    def one_seed(seed: int) -> dict[str, float]:
+        g = torch.Generator(device=device).manual_seed(seed)
+        r = rollout(ckpt, x0, P.apd_frames, P.n_samples, steps, g, start_pose=start, device=device)
+        rows = []
+        for c, s in enumerate(states):
+            ref = s.reference
+            has_ref = ref is not None and len(ref) >= P.ade_frames
+            rows.append(
+                metrics.motion_metrics(
+                    r.positions[c],
+                    sk.parents,
+                    sk.foot_indices,
+                    ref_len,
+                    reference=ref[: P.ade_frames] if has_ref else None,
+                    ade_frames=P.ade_frames,
+                    foot_offset=foot_offset,
+                )
+            )
+        keys = rows[0].keys() | set().union(*(r.keys() for r in rows))
+        return {k: float(np.mean([r[k] for r in rows if k in r])) for k in keys}
+
+    return metrics.over_seeds(one_seed, P.seeds)
+
+
+def dataset_row(
+    dataset: MotionDataset, skeleton: Skeleton, window: int = 150
+) -> dict[str, tuple[float, float]]:
+    """The data's own FS, bone error, Jnt.Accel and penetration (std over clips).
+
+    Each clip is cut into windows of at most ``window`` frames, as the samples are.
+    """
+    foot_offset = _foot_offset(dataset, skeleton)
+    ref_len = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
+    per_clip = []
+    for c in dataset:
+        x = c.positions[:window]
+        row = {
+            "FS": metrics.foot_sliding(x, skeleton.foot_indices, foot_offset=foot_offset),
+            "Bone.Err": metrics.bone_length_error(x, skeleton.parents, ref_len),
+            "Jnt.Accel": metrics.joint_acceleration(x),
+        }
+        pen = metrics.foot_penetration(x, skeleton.foot_indices, foot_offset=foot_offset)
+        row["Pen.Freq"], row["Pen.Dist"] = pen
+        per_clip.append(row)
+    return {k: metrics.mean_std(r[k] for r in per_clip) for k in per_clip[0]}
+
+
+def table1(
+    models: Mapping[str, Checkpoint],
+    protocol: Protocol | None = None,
+    *,
+    steps: int | None = None,
+    with_dataset: bool = False,
+    device: torch.device | str = "cpu",
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """Table 1 (random sampling) for several models from the same fixed initial states."""
+    protocol = protocol or Protocol()
+    first = next(iter(models.values()))
+    dataset = checkpoint_clips(first)
+    states = random_states(dataset, protocol.n_states, protocol.ade_frames, protocol.state_seed)
+    sk = checkpoint_skeleton(first)
+    offset = _foot_offset(dataset, sk)
+    out = {
+        name: evaluate(ck, states, protocol, steps=steps, foot_offset=offset, device=device)
+        for name, ck in models.items()
+    }
+    if with_dataset:
+        out["dataset"] = dataset_row(dataset, sk, protocol.apd_frames)
+    return out
+
+
+def table2(
+    models: Mapping[str, Checkpoint],
+    protocol: Protocol | None = None,
+    *,
+    per_clip: int = 1,
+    steps: int | None = None,
+    device: torch.device | str = "cpu",
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """Table 2 (motion continuation): start at the last 30 frames of every recorded clip."""
+    protocol = protocol or Protocol()
+    first = next(iter(models.values()))
+    states = continuation_states(
+        checkpoint_clips(first, unrolled=False), per_clip, seed=protocol.state_seed
+    )
+    offset = _foot_offset(checkpoint_clips(first), checkpoint_skeleton(first))
+    return {
+        name: evaluate(ck, states, protocol, steps=steps, foot_offset=offset, device=device)
+        for name, ck in models.items()
+    }
+
+
+@torch.no_grad()
+def time_per_frame(
+    ckpt: Checkpoint,
+    steps: int | None = None,
+    batch: int = 1,
+    n_frames: int = 30,
+    device: torch.device | str = "cpu",
+    repeats: int = 3,
+) -> float:
+    """Median wall time of one generated frame, in ms, for a batch of ``batch`` characters."""
+    state = initial_state(ckpt, checkpoint_clips(ckpt).names[0], 1)
+    x0 = state.features[None].expand(batch, -1)
+    g = torch.Generator(device=device).manual_seed(0)
+    kw = dict(steps=steps, generator=g, decode_positions=False, device=device)
+    rollout(ckpt, x0, 2, **kw)  # warm-up
+    times = []
+    for _ in range(repeats):
+        if torch.device(device).type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        rollout(ckpt, x0, n_frames, **kw)
+        if torch.device(device).type == "cuda":
+            torch.cuda.synchronize()
+        times.append((time.perf_counter() - t0) / n_frames * 1e3)
+    return float(np.median(times))
+
+
+def drift(
+    ckpt: Checkpoint,
+    state: InitialState,
+    n_frames: int = 1000,
+    n_samples: int = 8,
+    window: int = 100,
+    seed: int = 0,
+    steps: int | None = None,
+    device: torch.device | str = "cpu",
+) -> dict[str, np.ndarray]:
+    """Bone error (cm) and root height (m) per window of a long rollout, averaged over samples.
+
+    Returns ``{"frame": (W,) window ends, "bone_err": (W,), "root_height": (W,),
+    "root_height_std": (W,)}``: a model without scheduled sampling drifts, its bones stretch and
+    its root sinks or floats.
+    """
+    sk = checkpoint_skeleton(ckpt)
+    ref_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    g = torch.Generator(device=device).manual_seed(seed)
+    r = rollout(
+        ckpt,
+        state.features,
+        n_frames,
+        n_samples,
+        steps,
+        g,
+        start_pose=_stack_start([state]),
+        device=device,
+    )
+    pos = r.positions[0]  # (K, F, J, 3)
+    ends, bone, height, height_std = [], [], [], []
+    for a in range(0, n_frames, window):
+        x = pos[:, a : a + window]
+        ends.append(min(a + window, n_frames))
+        bone.append(metrics.bone_length_error(x, sk.parents, ref_len))
+        z = x[..., 0, 2]  # (K, w) root height
+        height.append(float(z.mean()))
+        height_std.append(float(z.std()))
+    return {
+        "frame": np.array(ends),
+        "bone_err": np.array(bone),
+        "root_height": np.array(height),
+        "root_height_std": np.array(height_std),
+    }
+
+
+def format_table(
+    table: Mapping[str, Mapping[str, tuple[float, float] | float]],
+    columns: Sequence[str] | None = None,
+    digits: int = 2,
+) -> str:
+    """A plain-text table, one row per model, cells ``mean ± std`` (``-`` where missing)."""
+    if not table:
+        raise ValueError("table must hold at least one row")
+    if columns is None:
+        seen = [k for row in table.values() for k in row]
+        columns = [c for c in TABLE1_COLUMNS if c in seen] + [
+            c for c in dict.fromkeys(seen) if c not in TABLE1_COLUMNS
+        ]
+
+    def cell(v) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, tuple):
+            return f"{v[0]:.{digits}f} ± {v[1]:.{digits}f}"
+        return f"{v:.{digits}f}"
+
+    rows = [[name] + [cell(r.get(c)) for c in columns] for name, r in table.items()]
+    head = ["model", *columns]
+    widths = [max(len(x) for x in col) for col in zip(head, *rows, strict=True)]
+    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*head)] + [fmt.format(*r) for r in rows])
+
+
+def read_results(path: str | Path, table: str, key: str = "model") -> dict[str, dict]:
+    """Rows of one table from a JSON-lines file written by ``benchmarks/amdm_tables.py``.
+
+    Returns ``{row name: {metric: (mean, std)}}``, ready for :func:`format_table`.
+    """
+    out: dict[str, dict] = {}
+    for line in Path(path).read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("table") != table:
+            continue
+        cells = {k: (v["mean"], v["std"]) for k, v in rec.items() if isinstance(v, dict)
+                 and set(v) == {"mean", "std"}}  # fmt: skip
+        out[str(rec.get(key))] = cells
+    if not out:
+        raise ValueError(f"{path} holds no rows of table {table!r}")
+    return out
