@@ -150,6 +150,8 @@ def broken(old: str, new: str) -> str:
             "expected 15 channel values, got 5",
         ),
         (broken("100 90 0 90", "100 90 x 90"), TINY_MOTION_LINE + 4, "expected a number, got 'x'"),
+        (broken("100 90 0 90", "100 90 nan 90"), TINY_MOTION_LINE + 4, "frame 1 holds NaN/Inf"),
+        (broken("OFFSET 10 0 0", "OFFSET 10 inf 0"), line_of("OFFSET 10 0 0"), "OFFSET number"),
         (broken("Frames: 2", "Frames: 3"), TINY_MOTION_LINE + 4, "expected 3 frames"),
         (TINY.split("MOTION")[0], TINY_MOTION_LINE - 1, "expected MOTION, got end of file"),
         (broken("  }\n}\nMOTION", "  }\nMOTION"), TINY_MOTION_LINE - 1, "got end of hierarchy"),

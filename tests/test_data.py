@@ -54,6 +54,17 @@ def test_resampling_60_to_30_keeps_positions(clips):
     assert (dist <= np.linalg.norm(hi - lo, axis=-1) + 2e-3).all()
 
 
+@pytest.mark.parametrize("name, src_fps, every", [("spin", 24, (4, 5)), ("backflip", 16, (8, 15))])
+def test_upsampling_keeps_the_source_frames(clips, name, src_fps, every):
+    """24 Hz and 16 Hz sources: 30 Hz frames at the source's own times reproduce it exactly."""
+    src = load_clips(fps=src_fps, names=[name])[name]  # the source rate: no interpolation
+    k_src, k_30 = every  # every 4th 24 Hz frame is every 5th 30 Hz frame (1/6 s apart)
+    n = min(len(src.positions[::k_src]), len(clips[name].positions[::k_30]))
+    assert n >= 4  # the backflip's 16 Hz and 30 Hz frames meet every 0.5 s only
+    diff = clips[name].positions[::k_30][:n] - src.positions[::k_src][:n]
+    assert np.abs(diff).max() < 1e-5
+
+
 @pytest.mark.parametrize("name", ["walk", "run", "walker/turn_left0", "dance_a"])
 def test_looping_unroll_is_continuous_and_keeps_moving(clips, name):
     one = clips[name]
@@ -133,6 +144,12 @@ def test_bad_rotations_name_the_frame(tmp_path):
     with pytest.raises(ValueError, match="frame 7"):
         load_deepmimic(edited_walk(tmp_path, nan))
 
+    def inf_knee(frames):
+        frames[4][20] = float("inf")  # right knee angle (a 1-DoF hinge)
+
+    with pytest.raises(ValueError, match="right_knee.*frame 4"):
+        load_deepmimic(edited_walk(tmp_path, inf_knee))
+
     def zero(frames):
         frames[3][21:25] = [0.0, 0.0, 0.0, 0.0]  # right ankle quaternion
 
@@ -169,3 +186,41 @@ def test_clip_validates_shapes_and_values():
     clip = Clip("x", 30, sk, np.zeros((4, 3)), q)
     assert np.allclose(clip.positions[0], sk.rest_positions(), atol=1e-6)
     assert torch.is_tensor(clip.fk()[0])
+
+
+def test_deepmimic_frame_by_hand(tmp_path):
+    """One hand-written DeepMimic frame: joint order, hinge axes and the y-up -> z-up turn."""
+    s = math.sqrt(0.5)
+    frame = [1 / 30, 1.0, 0.9, 0.5, s, 0.0, s, 0.0]  # root at y-up (1, 0.9, 0.5), yaw +90 deg
+    ident = [1.0, 0.0, 0.0, 0.0]
+    frame += ident + ident  # chest, neck
+    frame += ident + [-math.pi / 2] + ident  # right hip, right knee bent 90 deg, right ankle
+    frame += [s, -s, 0.0, 0.0] + [0.0]  # right shoulder -90 deg about x (y-up: forward), elbow
+    frame += ident + [0.0] + ident  # left hip, knee, ankle
+    frame += ident + [math.pi / 2]  # left shoulder, left elbow bent 90 deg
+    assert len(frame) == 44
+    path = tmp_path / "pose.txt"
+    path.write_text(json.dumps({"Loop": "none", "Frames": [frame, frame]}))
+    clip = load_deepmimic(path)
+    sk = clip.skeleton
+    rest = sk.rest_positions()  # (J, 3) z-up, root at the origin, facing +x
+
+    def bone(name):
+        return float(np.linalg.norm(sk.offsets[sk.index(name)]))
+
+    # Expected positions in the root's own frame (x forward, y left, z up), by hand:
+    local = {n: rest[sk.index(n)].copy() for n in sk.names}
+    # The knee hinge (URDF axis z = the character's right) bends by -90 deg: shin points back.
+    local["right_ankle"] = local["right_knee"] + [-bone("right_ankle"), 0, 0]
+    # -90 deg about the forward axis raises the right arm sideways, to the character's right.
+    sh = local["right_shoulder"]
+    local["right_elbow"] = sh + [0, -bone("right_elbow"), 0]
+    local["right_wrist"] = sh + [0, -bone("right_elbow") - bone("right_wrist"), 0]
+    # The left elbow bends by +90 deg: the forearm points forward.
+    local["left_wrist"] = local["left_elbow"] + [bone("left_wrist"), 0, 0]
+    # The root turned +90 deg about z (x -> y) and moved to world (1, -0.5, 0.9).
+    expect = {n: np.array([-v[1], v[0], v[2]]) + [1.0, -0.5, 0.9] for n, v in local.items()}
+    for n in sk.names:
+        got = clip.positions[0, sk.index(n)]
+        assert np.allclose(got, expect[n], atol=1e-5), (n, got, expect[n])
+    assert np.allclose(clip.positions[1], clip.positions[0])
