@@ -66,7 +66,7 @@ PALETTE = (REAL, GENERATED, "#59a14f", "#b07aa1", "#76b7b2", "#edc948", "#9c755f
 
 GROUND = ((0.94, 0.94, 0.94), (0.86, 0.86, 0.86))  # checkerboard tiles, RGB in [0, 1]
 TILE = 1.0  # checkerboard tile size in metres
-GIF_COLORS = 32  # one global GIF palette of this many colours (smaller files, no flicker)
+GIF_COLORS = 64  # one global GIF palette (no flicker); 32 merged the hues of 4 characters
 
 Layout = Literal["side_by_side", "overlay"]
 Backend = Literal["pyvista", "matplotlib"]
@@ -150,7 +150,8 @@ def _colors(colors: Any, n: int) -> list[Any]:
     """One colour per character: default PALETTE in order, or one colour for all."""
     if colors is None:
         return [PALETTE[i % len(PALETTE)] for i in range(n)]
-    if isinstance(colors, str) or (len(colors) in (3, 4) and np.isscalar(colors[0])):
+    numbers = len(colors) in (3, 4) and all(isinstance(c, (int, float)) for c in colors)
+    if isinstance(colors, str) or numbers:  # one colour (a name or an RGB tuple) for all
         return [colors] * n
     if len(colors) != n:
         raise ValueError(f"colors has {len(colors)} entries for {n} motions")
