@@ -23,7 +23,8 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m ruff check minimdm tests benchmarks
+	$(PY) -m ruff check minimdm tests benchmarks notebooks
+	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
 	$(PY) -m pytest -q -p no:cacheprovider tests
 	$(PY) -m pytest -q -p no:cacheprovider --nbval-lax notebooks
 
@@ -34,12 +35,12 @@ lab: $(STAMP)
 	$(VENV)/bin/jupyter lab notebooks
 
 lint: $(STAMP)
-	$(PY) -m ruff check minimdm tests benchmarks
-	$(PY) -m ruff format --check minimdm tests benchmarks
+	$(PY) -m ruff check minimdm tests benchmarks notebooks
+	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
 
 format: $(STAMP)
-	$(PY) -m ruff format minimdm tests benchmarks
-	$(PY) -m ruff check --fix minimdm tests benchmarks
+	$(PY) -m ruff format minimdm tests benchmarks notebooks
+	$(PY) -m ruff check --fix minimdm tests benchmarks notebooks
 
 clean:
 	rm -rf book/_build
