@@ -103,7 +103,7 @@ def main() -> None:
                     "run": "cold" if run == 0 else "warm",
                     "config": config,
                     "fell_back_to_matplotlib": backend == "pyvista"
-                    and viz._PYVISTA_ERROR is not None,
+                    and viz.render._PYVISTA_ERROR is not None,
                     "seconds": round(seconds, 2),
                     "ms_per_frame": round(1000 * seconds / anim.n_frames, 1),
                     f"{args.format}_bytes": out.stat().st_size,

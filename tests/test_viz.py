@@ -44,7 +44,8 @@ def blue(img: np.ndarray) -> np.ndarray:
 @pytest.fixture(autouse=True)
 def _pyvista_works():
     yield
-    assert viz._PYVISTA_ERROR is None, f"pyvista fell back to matplotlib: {viz._PYVISTA_ERROR}"
+    err = viz.render._PYVISTA_ERROR
+    assert err is None, f"pyvista fell back to matplotlib: {err}"
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -159,8 +160,8 @@ def test_pyvista_failure_falls_back_to_matplotlib_once(monkeypatch, tmp_path):
     def broken(scene):
         raise RuntimeError("no EGL here")
 
-    monkeypatch.setattr(viz, "_PyvistaRenderer", broken)
-    monkeypatch.setattr(viz, "_PYVISTA_ERROR", None)  # undone (to None) after the test
+    monkeypatch.setattr(viz.render, "_PyvistaRenderer", broken)
+    monkeypatch.setattr(viz.render, "_PYVISTA_ERROR", None)  # undone (to None) after the test
     with pytest.warns(RuntimeWarning, match="no EGL here"):
         anim = viz.animate(walker(4), PARENTS, out=tmp_path / "f.gif", stride=1, size=(64, 48))
     assert iio.imread(anim.path, index=None).shape[:3] == (4, 48, 64)
