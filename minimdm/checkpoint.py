@@ -104,9 +104,21 @@ def model_spec(model: nn.Module) -> dict:
     raise ValueError(f"model must be one of {known} (or registered), got {type(model).__name__}")
 
 
+_LAZY_KINDS = {
+    "ddgan": "minimdm.ddgan",
+    "ddgan_generator": "minimdm.ddgan_nets",
+    "aamdm_motion": "minimdm.aamdm",
+}
+"""Kinds registered by modules that are imported on first use (``import minimdm`` stays light)."""
+
+
 def build_model(spec: dict) -> nn.Module:
     """Rebuild a network from :func:`model_spec`'s output (weights not loaded)."""
     kind = spec.get("kind")
+    if kind not in _BUILDERS and kind in _LAZY_KINDS:
+        import importlib
+
+        importlib.import_module(_LAZY_KINDS[kind])  # registers the kind
     if kind not in _BUILDERS:
         raise ValueError(f"model kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
     return _BUILDERS[kind](dict(spec["config"]))

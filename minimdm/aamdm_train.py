@@ -1,0 +1,282 @@
+"""Training the motion AAMDM (Qiao et al. 2024, §4 and Algorithm 1), and its command line.
+
+:func:`train_aamdm_motion` trains, in order, the autoencoder of the embedded space (eqs. 1-4), the
+polisher (Algorithm 1 lines 7-18, eqs. 7-9) and the DD-GAN (lines 19-25, eqs. 11-12) on the
+DeepMimic clips, then writes one checkpoint. Reproduce the book's model with
+
+    python -m minimdm.aamdm train configs/aamdm_book.yaml      # -> checkpoints/aamdm_book/
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from torch import Tensor, nn
+
+from minimdm.aamdm import (
+    X_DIM,
+    AAMDMMotion,
+    MotionModelConfig,
+    autoencoder_loss,
+    clip_trajectory_features,
+)
+from minimdm.checkpoint import save_checkpoint
+from minimdm.ddgan import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
+from minimdm.ddgan_train import GANConfig, PolishConfig, train_ddgan, train_polisher
+
+__all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
+
+
+@dataclass
+class AAMDMTrainConfig:
+    """A motion AAMDM run; ``configs/aamdm_*.yaml`` load into it."""
+
+    fps: float = 30.0
+    """Frame rate of the clips."""
+    clips: list[str] | None = None
+    """Clip names (None: every humanoid clip of the data package)."""
+    loop_frames: int | None = 150
+    """Unroll looping clips to this many frames."""
+    horizons: list[int] = field(default_factory=lambda: [10, 20, 30])
+    """Frames ahead of the future-trajectory features x."""
+    z_dim: int = 24
+    """Size of the learned latent z."""
+    ae_width: int = 256
+    """Hidden units of the autoencoder."""
+    ae_depth: int = 3
+    """Layers of the encoder and of the decoder."""
+    ae_steps: int = 2000
+    """Autoencoder optimizer steps."""
+    ae_batch: int = 256
+    """Pairs of consecutive frames per autoencoder step."""
+    ae_lr: float = 1e-3
+    """Autoencoder learning rate (cosine-decayed)."""
+    w_val: float = 1.0
+    """Weight of L_val (eq. 1)."""
+    w_vel: float = 1.0
+    """Weight of L_vel (eq. 2)."""
+    w_reg: float = 0.01
+    """Weight of L_reg (eq. 3)."""
+    T_gan: int = 3
+    """DD-GAN steps."""
+    T_adm: int = 2
+    """Polishing steps."""
+    latent_dim: int = 8
+    """Size of the GAN latent r."""
+    width: int = 256
+    """Hidden units of the generator and the polisher."""
+    depth: int = 4
+    """Layers of the generator and the polisher."""
+    disc_width: int = 256
+    """Hidden units of the discriminator."""
+    fourier: int = 0
+    """Random Fourier features in the generator and the discriminator."""
+    window: int = 4
+    """h: frames per training window of the polisher's rollout (paper: 10)."""
+    polish_steps: int = 2000
+    """Polisher optimizer steps."""
+    polish_batch: int = 64
+    """Windows per polisher step."""
+    polish_lr: float = 1e-3
+    """Polisher learning rate."""
+    polish_w_vel: float = 1.0
+    """Weight of the velocity loss of eq. 8 (on x)."""
+    gan_steps: int = 8000
+    """DD-GAN optimizer steps."""
+    gan_batch: int = 64
+    """Windows per DD-GAN step."""
+    lr_g: float = 2e-4
+    """Generator learning rate."""
+    lr_d: float = 4e-4
+    """Discriminator learning rate."""
+    r1_gamma: float = 0.3
+    """R1 penalty weight."""
+    clip_x0: float | None = 6.0
+    """Clamp x0 estimates (standardised units) while sampling."""
+    seed: int = 0
+    """Seeds everything."""
+    config_file: str | None = None
+    """The YAML file this config came from (set by load_train_config)."""
+
+
+def load_train_config(path: str | Path) -> AAMDMTrainConfig:
+    """Read a YAML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
+    path = Path(path)
+    data = yaml.safe_load(path.read_text()) or {}
+    names = {f.name for f in dataclasses.fields(AAMDMTrainConfig)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{path}: unknown config keys {unknown}; valid keys are {sorted(names)}")
+    for f in dataclasses.fields(AAMDMTrainConfig):
+        if f.name in data and f.type in ("float", "float | None") and data[f.name] is not None:
+            data[f.name] = float(data[f.name])  # YAML reads 1e-3 as a string
+    data.setdefault("config_file", path.as_posix())
+    return AAMDMTrainConfig(**data)
+
+
+def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
+    """Clips, per-clip features ``y`` (F_i - 1, D) and ``x`` (F_i - 1, 12), and the normalizer."""
+    from minimdm import data, features
+
+    clips = data.load_clips(fps=config.fps, loop_frames=config.loop_frames, names=config.clips)
+    ys = [features.encode(c) for c in clips]
+    xs = [clip_trajectory_features(c, tuple(config.horizons)) for c in clips]
+    return {
+        "clips": clips,
+        "y": ys,
+        "x": xs,
+        "normalizer": features.Normalizer.fit(ys),
+        "skeleton": clips.skeleton,
+        "layout": features.FeatureLayout.for_skeleton(clips.skeleton, config.fps),
+    }
+
+
+def _pairs(arrays: list[Tensor]) -> Tensor:
+    return torch.cat([torch.stack([a[:-1], a[1:]], dim=1) for a in arrays])  # (N, 2, D)
+
+
+def train_aamdm_motion(
+    config: AAMDMTrainConfig, out_dir: str | Path | None = None, progress: bool = True
+) -> tuple[AAMDMMotion, dict]:
+    """Train the autoencoder, then the polisher, then the DD-GAN (AAMDM §4 and Algorithm 1).
+
+    Writes ``out_dir/model.safetensors`` and ``model.json`` (plus the GAN's resumable
+    ``model.train.safetensors``) when ``out_dir`` is given. Returns the model and a report of
+    the training times and final losses.
+    """
+    from minimdm.train import make_windows
+
+    c = config
+    log = print if progress else (lambda *a, **k: None)
+    t_all = time.perf_counter()
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)  # a folder: model.* inside it
+    d = load_motion_data(c)
+    norm, skeleton = d["normalizer"], d["skeleton"]
+    x_all = torch.cat(d["x"])
+    x_mean, x_std = x_all.mean(0), x_all.std(0).clamp_min(1e-3)
+    ys = [norm.normalize(y) for y in d["y"]]
+    xs = [(x - x_mean) / x_std for x in d["x"]]
+    xz_dim = X_DIM + c.z_dim
+    tcfg = AAMDMConfig(
+        xz_dim, xz_dim, c.T_gan, c.T_adm, latent_dim=c.latent_dim, width=c.width,
+        depth=c.depth, fourier=c.fourier, clip_x0=c.clip_x0,
+    )  # fmt: skip
+    mcfg = MotionModelConfig(
+        norm.dim, X_DIM, c.z_dim, c.ae_width, c.ae_depth, list(c.horizons), asdict(tcfg)
+    )
+    torch.manual_seed(c.seed)
+    model = AAMDMMotion(mcfg)
+    model.y_mean.copy_(norm.mean)
+    model.y_std.copy_(norm.std)
+    model.x_mean.copy_(x_mean)
+    model.x_std.copy_(x_std)
+    report: dict[str, Any] = {"frames": int(sum(len(y) for y in ys))}
+
+    # 1. the autoencoder, on pairs of consecutive frames (eqs. 1-4)
+    y_pairs, x_pairs = _pairs(ys), _pairs(xs)
+    ae = model.autoencoder
+    opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=c.ae_steps, eta_min=c.ae_lr / 20)
+    g = torch.Generator().manual_seed(c.seed)
+    t0 = time.perf_counter()
+    for step in range(c.ae_steps):
+        idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
+        loss, info = autoencoder_loss(
+            ae, y_pairs[idx], x_pairs[idx], norm.denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
+        )
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(ae.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        if (step + 1) % 500 == 0:
+            log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
+    report["autoencoder_s"] = time.perf_counter() - t0
+    report["autoencoder"] = _round(info)
+    ae.eval()
+
+    # 2. the embedded vectors xz of every frame, standardised
+    with torch.no_grad():
+        xz_raw = [torch.cat([x, ae.encode(y)], dim=-1) for x, y in zip(xs, ys, strict=True)]
+    cat = torch.cat(xz_raw)
+    model.xz_mean.copy_(cat.mean(0))
+    model.xz_std.copy_(cat.std(0).clamp_min(1e-3))
+    xz = [(a - model.xz_mean) / model.xz_std for a in xz_raw]
+    windows = make_windows(xz, c.window)  # (W, h + 1, X + Z)
+    report["windows"] = int(windows.shape[0])
+
+    # 3. the polisher (Algorithm 1 lines 7-18), velocities on x (eq. 8)
+    tr = model.transition
+    sch = tr.schedule("cpu")
+    pcfg = PolishConfig(c.polish_steps, c.polish_batch, c.polish_lr, c.polish_w_vel, seed=c.seed)
+    t0 = time.perf_counter()
+    hist = train_polisher(tr.polisher, sch, windows, c.T_adm, pcfg, vel_dims=slice(0, X_DIM))
+    report["polisher_s"] = time.perf_counter() - t0
+    report["polisher"] = _round(hist[-1])
+    log(f"polisher: {json.dumps(report['polisher'])} in {report['polisher_s']:.0f} s", flush=True)
+
+    # 4. the DD-GAN, conditioned on the polisher's rollouts (lines 19-25)
+    disc = DDGANDiscriminator(
+        DiscriminatorConfig(xz_dim, xz_dim, c.disc_width, 3, 64, fourier=c.fourier)
+    )
+    gcfg = GANConfig(
+        c.gan_steps, c.gan_batch, c.lr_g, c.lr_d, r1_gamma=c.r1_gamma, seed=c.seed,
+        ckpt_interval=1000,
+    )  # fmt: skip
+    meta = {
+        "config": asdict(c),
+        "config_file": c.config_file,
+        "command": f"python -m minimdm.aamdm train {c.config_file}",
+        "feature_layout": d["layout"],
+        "skeleton": skeleton,
+        "normalizer": norm,
+        "data": {"clips": d["clips"].names, "fps": c.fps, "windows": int(windows.shape[0])},
+    }
+
+    def tick(step: int, rec: dict) -> None:
+        if step % 500 == 0:
+            keep = ("loss_d", "loss_g", "d_real", "d_fake")
+            log(f"dd-gan {step}/{c.gan_steps}: {json.dumps(_round(rec, keep))}", flush=True)
+
+    t0 = time.perf_counter()
+    gan_hist = train_ddgan(
+        tr.generator, disc, sch, windows, c.T_gan, gcfg, polisher=tr.polisher,
+        checkpoint=out_dir, bundle=model, metadata=meta, resume=False, callback=tick,
+    )  # fmt: skip
+    report["gan_s"] = time.perf_counter() - t0
+    report["gan"] = _round(gan_hist[-1], ("loss_d", "loss_g", "d_real", "d_fake"))
+    report["total_s"] = time.perf_counter() - t_all
+    model.eval()
+    if out_dir is not None:
+        meta.update(step=c.gan_steps, report=report)
+        save_checkpoint(out_dir, model, meta)
+    return model, report
+
+
+def _round(d: dict, keys: tuple[str, ...] | None = None) -> dict:
+    return {k: round(float(v), 5) for k, v in d.items() if keys is None or k in keys}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m minimdm.aamdm train CONFIG [--out DIR]``."""
+    p = argparse.ArgumentParser(prog="python -m minimdm.aamdm", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train", help="train a motion AAMDM from a YAML config")
+    t.add_argument("config")
+    t.add_argument("--out", default=None, help="checkpoint folder (default: checkpoints/NAME)")
+    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    cfg = load_train_config(args.config)
+    out = args.out or f"checkpoints/{Path(args.config).stem}"
+    _, report = train_aamdm_motion(cfg, out)
+    print(json.dumps({"checkpoint": out, **report}))

@@ -1,0 +1,416 @@
+"""Training AAMDM's two modules (AAMDM Algorithm 1): the polisher, then the DD-GAN.
+
+Both trainers take **windows** ``(N, h + 1, D)`` of consecutive samples: frame 0 starts a
+window and frames ``1..h`` are its targets. Squ-9 pairs are windows with ``h = 1``; motion
+uses the embedded vectors xz of ``h + 1`` consecutive frames.
+
+* :func:`train_polisher` (Algorithm 1 lines 7-18): the x0-predicting diffusion model
+  :math:`G^{ADM}` rolls out over the window, each frame denoised from a random polishing level
+  ``t < T_adm`` and conditioned on its own previous output, with the loss of eqs. 7-9
+  (values plus velocities).
+* :func:`train_ddgan` (lines 19-25): the generator and the discriminator, at random GAN levels
+  ``t >= T_adm``, with the non-saturating losses of eqs. 11-12 and an R1 penalty on real pairs
+  (Xiao et al. 2022, §3.3). The conditions are the polisher's rollout when a polisher is given
+  (line 23), else the ground-truth previous frames.
+
+GAN training can diverge. Every ``ckpt_interval`` steps the trainer writes a checkpoint with
+:func:`minimdm.checkpoint.save_checkpoint` (atomic), and a non-finite loss stops the run with a
+:class:`GANDivergedError` that names the step, the losses and the last good checkpoint, which is
+left untouched. A run resumes from its training state.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from minimdm.checkpoint import checkpoint_paths, load_train_state, save_checkpoint
+from minimdm.ddgan import DDGANDiscriminator, DDGANGenerator, q_posterior_sample, q_sample_pairs
+from minimdm.diffusion import NoiseSchedule, q_sample
+
+__all__ = [
+    "GANDivergedError",
+    "PolishConfig",
+    "GANConfig",
+    "polisher_rollout",
+    "polish_loss",
+    "discriminator_loss",
+    "generator_loss",
+    "train_polisher",
+    "train_ddgan",
+    "pairs_to_windows",
+]
+
+
+class GANDivergedError(FloatingPointError):
+    """A DD-GAN loss became NaN or Inf; the message names the step and the last good checkpoint."""
+
+
+@dataclass
+class PolishConfig:
+    """Training of the polishing module (AAMDM §3.2, Algorithm 1 lines 7-18)."""
+
+    steps: int = 2000
+    """Optimizer steps."""
+    batch_size: int = 256
+    """Windows per step."""
+    lr: float = 3e-3
+    """Adam learning rate at the start, cosine-decayed to lr / 20 (paper: RAdam, 3e-4)."""
+    w_vel: float = 1.0
+    """Weight of the velocity loss, eq. 8 (w_val is 1)."""
+    backprop_rollout: bool = True
+    """Let gradients flow through the rollout's conditions (False: detach them)."""
+    grad_clip: float = 1.0
+    """Clip the gradient norm (0: no clipping)."""
+    seed: int = 0
+    """Seeds the batches and the noise."""
+
+
+@dataclass
+class GANConfig:
+    """Training of the DD-GAN generation module (AAMDM §3.3, eqs. 11-12)."""
+
+    steps: int = 3000
+    """Optimizer steps (each updates the discriminator, then the generator against it)."""
+    batch_size: int = 256
+    """Windows per step."""
+    lr_g: float = 1e-3
+    """Generator learning rate (Adam, betas 0.5 / 0.9 as DD-GAN; paper: RAdam, 1e-4)."""
+    lr_d: float = 1e-3
+    """Discriminator learning rate."""
+    lr_end: float = 0.1
+    """Both learning rates decay (cosine) to this fraction of their start (1: constant)."""
+    r1_gamma: float = 0.05
+    """Weight of the R1 penalty on real pairs (Xiao et al. 2022; 0: none)."""
+    grad_clip: float = 5.0
+    """Clip the gradient norms (0: no clipping)."""
+    ema_decay: float = 0.999
+    """Exponential moving average of the generator's weights, used for sampling (0: none)."""
+    ckpt_interval: int = 500
+    """Write a checkpoint every this many steps when a path is given (0: only at the end)."""
+    seed: int = 0
+    """Seeds the batches, levels and noise."""
+
+
+def pairs_to_windows(x_prev: Tensor, x_next: Tensor) -> Tensor:
+    """Pairs ``(N, D)`` and ``(N, D)`` as windows ``(N, 2, D)`` (h = 1)."""
+    if x_prev.shape != x_next.shape or x_prev.dim() != 2:
+        raise ValueError(
+            f"x_prev and x_next must both be (N, D), got {tuple(x_prev.shape)}, "
+            f"{tuple(x_next.shape)}"
+        )
+    return torch.stack([x_prev, x_next], dim=1)
+
+
+def _check_windows(windows: Tensor) -> None:
+    if windows.dim() != 3 or windows.shape[1] < 2:
+        raise ValueError(f"windows must have shape (N, h + 1 >= 2, D), got {tuple(windows.shape)}")
+    if not torch.isfinite(windows).all():
+        raise ValueError("windows must be finite, but they hold NaN/Inf")
+
+
+def _levels(n: int, lo: int, hi: int, gen: torch.Generator, device) -> Tensor:
+    return torch.randint(lo, hi, (n,), generator=gen, device=device)
+
+
+def polisher_rollout(
+    polisher: nn.Module,
+    schedule: NoiseSchedule,
+    windows: Tensor,
+    T_adm: int,
+    generator: torch.Generator | None,
+    detach: bool = False,
+) -> Tensor:
+    """Algorithm 1 lines 8-15: :math:`\\hat x^0_{1:h}` (B, h, D) along windows (B, h + 1, D).
+
+    Frame ``n`` is noised to a random level ``t < T_adm`` and denoised by
+    :math:`G^{ADM}(x_n^t, \\hat x^0_{n-1}, t)`, starting from the ground-truth frame 0.
+    """
+    B, n1, _ = windows.shape
+    cond, out = windows[:, 0], []
+    for n in range(1, n1):
+        t = _levels(B, 0, T_adm, generator, windows.device)
+        x_t = q_sample(schedule, windows[:, n], t, generator=generator)
+        x0_hat = polisher(x_t, t, cond)  # (B, D)
+        out.append(x0_hat)
+        cond = x0_hat.detach() if detach else x0_hat
+    return torch.stack(out, dim=1)
+
+
+def polish_loss(
+    x0_hat: Tensor, windows: Tensor, w_vel: float = 1.0, vel_dims: slice | None = None
+) -> tuple[Tensor, dict[str, float]]:
+    """AAMDM eqs. 7-9 on a rollout ``x0_hat`` (B, h, D) of windows (B, h + 1, D).
+
+    :math:`L_{val} = \\|\\hat x_{1:h} - x_{1:h}\\|^2` and
+    :math:`L_{vel} = \\|(\\hat x_{1:h} - \\hat x_{0:h-1}) - (x_{1:h} - x_{0:h-1})\\|^2` with
+    :math:`\\hat x_0 = x_0`, each a mean over frames and dimensions (squared norms, velocities
+    per frame); ``vel_dims`` restricts the velocity term to the engineered features x.
+    """
+    target = windows[:, 1:]
+    l_val = ((x0_hat - target) ** 2).mean()
+    prev_hat = torch.cat([windows[:, :1], x0_hat[:, :-1]], dim=1)
+    v_hat, v = x0_hat - prev_hat, target - windows[:, :-1]  # (B, h, D)
+    if vel_dims is not None:
+        v_hat, v = v_hat[..., vel_dims], v[..., vel_dims]
+    l_vel = ((v_hat - v) ** 2).mean()
+    return l_val + w_vel * l_vel, {"l_val": float(l_val.detach()), "l_vel": float(l_vel.detach())}
+
+
+def _cosine_lr(lr: float, step: int, steps: int) -> float:
+    frac = min(step / max(steps - 1, 1), 1.0)
+    return lr / 20 + 0.5 * (lr - lr / 20) * (1 + math.cos(math.pi * frac))
+
+
+def train_polisher(
+    polisher: nn.Module,
+    schedule: NoiseSchedule,
+    windows: Tensor,
+    T_adm: int,
+    config: PolishConfig | None = None,
+    vel_dims: slice | None = None,
+) -> list[dict]:
+    """Fit :math:`G^{ADM}` on the polishing levels ``0 .. T_adm - 1`` (Algorithm 1).
+
+    Returns one record per step (``loss``, ``l_val``, ``l_vel``).
+    """
+    config = config or PolishConfig()
+    _check_windows(windows)
+    if not 1 <= T_adm <= schedule.T:
+        raise ValueError(f"T_adm must lie in [1, T={schedule.T}] to train a polisher, got {T_adm}")
+    device = next(polisher.parameters()).device
+    windows, schedule = windows.to(device), schedule.to(device)
+    gen = torch.Generator(device).manual_seed(config.seed)
+    opt = torch.optim.Adam(polisher.parameters(), lr=config.lr)
+    history = []
+    polisher.train()
+    for step in range(config.steps):
+        for g in opt.param_groups:
+            g["lr"] = _cosine_lr(config.lr, step, config.steps)
+        w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
+        x0_hat = polisher_rollout(
+            polisher, schedule, w, T_adm, gen, detach=not config.backprop_rollout
+        )
+        loss, info = polish_loss(x0_hat, w, config.w_vel, vel_dims)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"polisher loss became {loss.item()} at step {step}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if config.grad_clip > 0:
+            nn.utils.clip_grad_norm_(polisher.parameters(), config.grad_clip)
+        opt.step()
+        history.append({"step": step + 1, "loss": loss.item(), **info})
+    polisher.eval()
+    return history
+
+
+def _draw_pairs(gan, schedule, x0, cond, T_gan, generator):
+    """Levels, real pairs and the generator's fake x_{t-1} for one batch (shared by D and G)."""
+    B, T = x0.shape[0], schedule.T
+    k = _levels(B, 0, T_gan, generator, x0.device)  # the GAN's own step index
+    t = k + (T - T_gan)
+    x_prev_real, x_t = q_sample_pairs(schedule, x0, t, generator)
+    r = torch.randn((B, gan.config.latent_dim), generator=generator, device=x0.device)
+    x0_fake = gan(x_t, k, cond, r)
+    x_prev_fake = q_posterior_sample(schedule, x0_fake, x_t, t, generator)
+    return k, x_prev_real, x_t, x_prev_fake
+
+
+def discriminator_loss(
+    disc: DDGANDiscriminator,
+    x_prev_real: Tensor,
+    x_prev_fake: Tensor,
+    x_t: Tensor,
+    cond: Tensor | None,
+    k: Tensor,
+    r1_gamma: float = 0.0,
+) -> tuple[Tensor, dict[str, float]]:
+    """AAMDM eq. 12 with a logit D: :math:`\\mathrm{softplus}(-D_r) + \\mathrm{softplus}(D_f)`.
+
+    ``r1_gamma`` adds the R1 penalty :math:`\\tfrac{\\gamma}{2}\\|\\nabla_{x^{t-1}} D_r\\|^2`
+    (Xiao et al. 2022). The fake pair is detached: this loss trains D only.
+    """
+    x_prev_real = x_prev_real.detach().requires_grad_(r1_gamma > 0)
+    d_real = disc(x_prev_real, x_t, cond, k)
+    d_fake = disc(x_prev_fake.detach(), x_t, cond, k)
+    loss = nn.functional.softplus(-d_real).mean() + nn.functional.softplus(d_fake).mean()
+    r1 = torch.zeros((), device=x_t.device)
+    if r1_gamma > 0:
+        (grad,) = torch.autograd.grad(d_real.sum(), x_prev_real, create_graph=True)
+        r1 = grad.pow(2).flatten(1).sum(1).mean()
+        loss = loss + 0.5 * r1_gamma * r1
+    info = {
+        "loss_d": loss.item(),
+        "d_real": torch.sigmoid(d_real).mean().item(),
+        "d_fake": torch.sigmoid(d_fake).mean().item(),
+        "r1": r1.item(),
+    }
+    return loss, info
+
+
+def generator_loss(
+    disc: DDGANDiscriminator, x_prev_fake: Tensor, x_t: Tensor, cond: Tensor | None, k: Tensor
+) -> Tensor:
+    """AAMDM eq. 11, non-saturating: :math:`\\mathrm{softplus}(-D(\\text{fake pair}))`."""
+    return nn.functional.softplus(-disc(x_prev_fake, x_t, cond, k)).mean()
+
+
+def train_ddgan(
+    gan: DDGANGenerator,
+    disc: DDGANDiscriminator,
+    schedule: NoiseSchedule,
+    windows: Tensor,
+    T_gan: int,
+    config: GANConfig | None = None,
+    polisher: nn.Module | None = None,
+    T_adm: int | None = None,
+    checkpoint: str | Path | None = None,
+    bundle: nn.Module | None = None,
+    metadata: dict | None = None,
+    resume: bool = True,
+    callback=None,
+) -> list[dict]:
+    """Train the DD-GAN generation module on ``windows`` (N, h + 1, D).
+
+    Args:
+        gan, disc: the generator (trained) and discriminator.
+        schedule: the full ``T_gan + T_adm`` schedule; the GAN owns its top ``T_gan`` levels.
+        polisher: if given (and ``T_adm`` > 0), the conditions are its rollout along each window
+            (Algorithm 1 line 23), else the ground-truth previous frames.
+        checkpoint: a folder or stem; ``bundle`` (the module holding ``gan``, default ``gan``)
+            is saved there every ``config.ckpt_interval`` steps and at the end, with the
+            discriminator and optimizers as training state. With ``resume`` a run continues
+            from that state.
+        callback: ``callback(step, record)`` after every step (``record["ema"]`` holds the
+            averaged generator weights); raising stops the run.
+
+    At the end ``gan`` holds the averaged weights (``config.ema_decay``), as do checkpoints.
+
+    Raises:
+        GANDivergedError: a loss became NaN or Inf. Nothing is written after the last good
+            checkpoint, whose step and path the message names.
+
+    Returns one record per step (losses, discriminator outputs, seconds).
+    """
+    config = config or GANConfig()
+    _check_windows(windows)
+    if not 1 <= T_gan <= schedule.T:
+        raise ValueError(f"T_gan must lie in [1, T={schedule.T}], got {T_gan}")
+    T_adm = schedule.T - T_gan if T_adm is None else T_adm
+    if T_gan + T_adm != schedule.T:
+        raise ValueError(
+            f"T_gan + T_adm must equal the schedule's T = {schedule.T}, got {T_gan} + {T_adm}"
+        )
+    device = next(gan.parameters()).device
+    windows, schedule = windows.to(device), schedule.to(device)
+    gen = torch.Generator(device).manual_seed(config.seed)
+    opt_g = torch.optim.Adam(gan.parameters(), lr=config.lr_g, betas=(0.5, 0.9))
+    opt_d = torch.optim.Adam(disc.parameters(), lr=config.lr_d, betas=(0.5, 0.9))
+    bundle = bundle if bundle is not None else gan
+    step, last_good = 0, None
+    ema = {k: v.detach().clone() for k, v in gan.state_dict().items()}
+    if checkpoint is not None and resume and checkpoint_paths(checkpoint).train.exists():
+        _, state = load_train_state(checkpoint)
+        bundle.load_state_dict(state["bundle"])
+        gan.load_state_dict(state["gan_raw"])
+        ema = {k: v.to(device) for k, v in state["gan_ema"].items()}
+        disc.load_state_dict(state["disc"])
+        opt_g.load_state_dict(state["opt_g"])
+        opt_d.load_state_dict(state["opt_d"])
+        gen.set_state(state["generator"].to(torch.uint8))
+        step = last_good = int(state["step"])
+
+    def save(at: int) -> None:
+        raw = {k: v.detach().clone() for k, v in gan.state_dict().items()}
+        gan.load_state_dict(ema)  # the checkpoint samples with the averaged generator
+        state = {
+            "step": at,
+            "bundle": bundle.state_dict(),
+            "gan_raw": raw,
+            "gan_ema": ema,
+            "disc": disc.state_dict(),
+            "opt_g": opt_g.state_dict(),
+            "opt_d": opt_d.state_dict(),
+            "generator": gen.get_state(),
+        }
+        meta = {**(metadata or {}), "step": at, "gan_config": asdict(config)}
+        try:
+            save_checkpoint(checkpoint, bundle, meta, optimizer_state=state)
+        finally:
+            gan.load_state_dict(raw)
+
+    use_rollout = polisher is not None and T_adm > 0 and windows.shape[1] > 2
+    history: list[dict] = []
+    gan.train()
+    disc.train()
+    t0 = time.perf_counter()
+    while step < config.steps:
+        frac = 0.5 * (1 + math.cos(math.pi * min(step / max(config.steps - 1, 1), 1.0)))
+        for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
+            for group in opt.param_groups:
+                group["lr"] = lr * (config.lr_end + (1 - config.lr_end) * frac)
+        w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
+        B, n1, D = w.shape
+        if use_rollout:
+            with torch.no_grad():
+                polisher.eval()
+                roll = polisher_rollout(polisher, schedule, w, T_adm, gen)  # (B, h, D)
+            cond = torch.cat([w[:, :1], roll[:, :-1]], dim=1)
+        else:
+            cond = w[:, :-1]
+        x0 = w[:, 1:].reshape(B * (n1 - 1), D)
+        cond = cond.reshape(B * (n1 - 1), -1)
+        k, x_prev_real, x_t, x_prev_fake = _draw_pairs(gan, schedule, x0, cond, T_gan, gen)
+        loss_d, info = discriminator_loss(
+            disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
+        )
+        if torch.isfinite(loss_d):  # alternate: step D, then G against the updated D
+            opt_d.zero_grad(set_to_none=True)
+            loss_d.backward()
+            if config.grad_clip > 0:
+                nn.utils.clip_grad_norm_(disc.parameters(), config.grad_clip)
+            opt_d.step()
+            loss_g = generator_loss(disc, x_prev_fake, x_t, cond, k)
+        else:
+            loss_g = torch.full((), float("nan"))
+        info["loss_g"] = loss_g.item()
+        if not (torch.isfinite(loss_d) and torch.isfinite(loss_g)):
+            where = (
+                f"the last good checkpoint (step {last_good}) is kept at "
+                f"{checkpoint_paths(checkpoint).weights}"
+                if checkpoint is not None and last_good is not None
+                else "no checkpoint was written (pass checkpoint= to keep one)"
+            )
+            raise GANDivergedError(
+                f"DD-GAN training diverged at step {step + 1}: loss_D = {loss_d.item()}, "
+                f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
+            )
+        opt_g.zero_grad(set_to_none=True)
+        loss_g.backward(inputs=list(gan.parameters()))
+        if config.grad_clip > 0:
+            nn.utils.clip_grad_norm_(gan.parameters(), config.grad_clip)
+        opt_g.step()
+        with torch.no_grad():
+            d = min(config.ema_decay, (1 + step) / (10 + step))
+            for key, v in gan.state_dict().items():
+                if v.dtype.is_floating_point:
+                    ema[key].lerp_(v, 1 - d)
+        step += 1
+        record = {"step": step, **info, "seconds": time.perf_counter() - t0}
+        history.append(record)
+        if checkpoint is not None and (
+            step == config.steps or (config.ckpt_interval and step % config.ckpt_interval == 0)
+        ):
+            save(step)
+            last_good = step
+        if callback is not None:
+            callback(step, {**record, "ema": ema})
+    gan.load_state_dict(ema)
+    gan.eval()
+    disc.eval()
+    return history
