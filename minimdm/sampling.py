@@ -91,13 +91,17 @@ def next_frame(
     predicts: str = "eps",
     clip_x0: float | None = None,
     hook: Hook | None = None,
+    *,
+    t_start: int | None = None,
+    x_start: Tensor | None = None,
 ) -> Tensor:
     """One auto-regressive step in normalized space: :math:`x_f` (B, D) from :math:`x_{f-1}`.
 
     For an :class:`~minimdm.models.MLPDenoiser` this runs the reverse chain: DDPM over all T
     steps when ``steps`` is None or T, else DDIM over ``steps`` of them with ``eta``
     (1: as stochastic as DDPM, 0: deterministic given the start noise). ``hook`` is passed to
-    the sampler (inpainting, guidance...).
+    the sampler (inpainting, guidance...). ``t_start`` and ``x_start`` start the DDPM chain at
+    that level from that sample (keyframe inbetweening, A-MDM eq. 5); DDPM only.
     """
     if isinstance(model, MLPDenoiser):
         if schedule is None:
@@ -105,13 +109,36 @@ def next_frame(
         shape = tuple(cond.shape)
         if steps is None or steps == schedule.T:
             return ddpm_sample(
-                model, schedule, shape, cond, generator, hook, predicts, clip_x0=clip_x0
+                model,
+                schedule,
+                shape,
+                cond,
+                generator,
+                hook,
+                predicts,
+                t_start=t_start,
+                x_start=x_start,
+                clip_x0=clip_x0,
             )
+        if t_start is not None:
+            raise ValueError(f"t_start needs DDPM sampling (steps=None or T), got steps={steps}")
         return ddim_sample(
-            model, schedule, shape, cond, steps, eta, generator, hook, predicts, clip_x0=clip_x0
+            model,
+            schedule,
+            shape,
+            cond,
+            steps,
+            eta,
+            generator,
+            hook,
+            predicts,
+            x_start=x_start,
+            clip_x0=clip_x0,
         )
-    if hook is not None:
-        raise ValueError(f"hook needs a diffusion model, got {type(model).__name__}")
+    if hook is not None or t_start is not None or x_start is not None:
+        raise ValueError(
+            f"hook, t_start and x_start need a diffusion model, got {type(model).__name__}"
+        )
     if isinstance(model, MVAE):
         return model.sample(cond, generator)
     if isinstance(model, MLPRegressor):

@@ -1,0 +1,293 @@
+"""Control without retraining (A-MDM §4.2-4.3, §6.1, §7.3.3): success, errors, quality, speed.
+
+Prints one JSON line per measurement. Not a test.
+
+* ``target_reaching``: task-oriented sampling from a fixed start at the origin towards targets
+  drawn uniformly in a 20 m x 20 m square around it (§6.1), success within 15 cm, for A-MDM,
+  the MVAE-style VAE and the MSE regressor under the same search. The regressor is
+  deterministic, so its pool holds P copies of one candidate; it is run as is (``mse``) and as
+  the Gaussian that MSE training fits, :math:`\\mathcal N(f(x), \\sigma^2)` with the per-dimension
+  residual std of the regressor on the training data (``mse+gauss``).
+* ``inpainting``: following a circle and a figure-eight with the root (and a lowered head):
+  trajectory error and motion quality (foot sliding, bone error, acceleration) against random
+  sampling from the same start.
+* ``inbetweening``: transitions to keyframes of other clips: keyframe error and smoothness
+  against linear interpolation in feature space.
+* ``speed``: ms/frame of each technique for one character on the CPU.
+
+    python benchmarks/control.py                         # the shipped book checkpoints
+    python benchmarks/control.py --quick                 # fewer runs, ~3 min
+    python benchmarks/control.py --amdm /tmp/amdm --mse /tmp/mse --mvae /tmp/mvae
+    python benchmarks/control.py --only speed
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+import torch
+
+from minimdm import control as C
+from minimdm import data, metrics
+from minimdm.checkpoint import load_checkpoint
+from minimdm.sampling import rollout
+
+START_CLIP, START_FRAME = "walker/0walk_forward", 20
+"""The fixed start state: a walking pose at the origin, heading +x, where the data branch
+(walk on, turn left, turn right: chapter 3)."""
+
+
+def emit(record: dict) -> None:
+    print(json.dumps(record), flush=True)
+
+
+def hardware() -> dict:
+    return {"torch": torch.__version__, "cpu_count": os.cpu_count(),
+            "threads": torch.get_num_threads()}  # fmt: skip
+
+
+def load(spec: str):
+    """``pretrained:NAME`` (minimdm.pretrained) or a checkpoint path."""
+    if spec.startswith("pretrained:"):
+        import minimdm
+
+        return minimdm.pretrained(spec.split(":", 1)[1])
+    return load_checkpoint(spec)
+
+
+def quality(pos: torch.Tensor, skeleton, offsets) -> dict:
+    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2) of (K, F, J, 3) motions."""
+    ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
+    fs = metrics.foot_sliding(pos, skeleton.foot_indices, foot_offset=offsets)
+    return {
+        "FS": round(fs, 3),
+        "Bone.Err": round(metrics.bone_length_error(pos, skeleton.parents, ref), 3),
+        "Jnt.Accel": round(metrics.joint_acceleration(pos), 3),
+    }
+
+
+# --------------------------------------------------------------------------- target reaching
+
+
+def stat(value: torch.Tensor, ok: torch.Tensor, digits: int) -> float | None:
+    """``value`` rounded, or None when no run succeeded."""
+    return round(float(value), digits) if ok.any() else None
+
+
+def target_reaching(models: dict, start, args) -> None:
+    rng = np.random.default_rng(args.seed)
+    goals = torch.tensor(rng.uniform(-10, 10, size=(args.runs, 2)), dtype=torch.float64)
+    goals = goals[goals.norm(dim=1) > 0.15]
+    dist = goals.norm(dim=1)
+    for name, cm in models.items():
+        g = torch.Generator().manual_seed(args.seed)
+        t0 = time.perf_counter()
+        m = C.beam_search(
+            cm, start.expand(len(goals), -1), C.target_score(goals), args.max_frames,
+            pool=args.pool, horizon=args.horizon, generator=g, stop_fn=C.reached(goals),
+        )  # fmt: skip
+        seconds = time.perf_counter() - t0
+        done = m.info["done_at"]
+        ok = done > 0
+        closest = (m.root_xy - goals[:, None].float()).norm(dim=-1).min(dim=1).values
+        steps = m.root_xy.diff(dim=1).norm(dim=-1)
+        length = torch.stack([steps[i, : (int(done[i]) if ok[i] else steps.shape[1]) - 1].sum()
+                              for i in range(len(goals))])  # fmt: skip
+        emit({
+            "bench": "target_reaching", "model": name, "runs": len(goals), "pool": args.pool,
+            "horizon": args.horizon, "max_frames": args.max_frames, "radius_m": 0.15,
+            "success_rate": round(float(ok.double().mean()), 3),
+            "frames_to_target_mean": stat(done[ok].double().mean(), ok, 1),
+            "frames_to_target_median": stat(done[ok].double().median(), ok, 1),
+            "path_over_distance": stat((length[ok] / dist[ok]).mean(), ok, 2),
+            "target_distance_mean_m": round(float(dist.mean()), 2),
+            "closest_approach_median_m": round(float(closest.median()), 2),
+            "seconds": round(seconds, 1),
+        })  # fmt: skip
+        if args.save_paths:
+            np.save(f"{args.save_paths}_{name}.npy", m.root_xy.numpy())
+
+
+# --------------------------------------------------------------------------- inpainting
+
+
+def inpainting(label, cm, start, skeleton, offsets, args) -> None:
+    K, F = args.samples, args.inpaint_frames
+    neck = cm.layout.joint_names.index("neck")
+    paths = {
+        "circle_r2": C.circle_path(2.0, 1.0, F, cm.fps),
+        "figure_eight_r1.5": C.figure_eight_path(1.5, 1.0, F, cm.fps),
+    }
+    for pname, path in paths.items():
+        root = C.root_path_targets(cm.layout, path)
+        head = C.joint_height_targets(cm.layout, "neck", torch.full((F,), 1.2))
+        runs = {
+            "inpaint_root": (root, -1),
+            "inpaint_root_soft": (root, cm.schedule.T // 4),
+            "inpaint_root_head1.2": (root | head, -1),
+        }
+        g = torch.Generator().manual_seed(args.seed)
+        free = rollout(
+            cm.net,
+            start[None],
+            F,
+            K,
+            generator=g,
+            normalizer=cm.normalizer,
+            schedule=cm.schedule,
+            clip_x0=cm.clip_x0,
+            start_pose=dict(xy=root.start_pose.xy, heading=root.start_pose.heading),
+        )
+        results = {"random_sampling": free.positions[0]}
+        for rname, (con, t_stop) in runs.items():
+            g = torch.Generator().manual_seed(args.seed)
+            m = C.inpaint(cm, start.expand(K, -1), con.targets, con.mask, g,
+                          start_pose=con.start_pose, t_stop=t_stop)  # fmt: skip
+            results[rname] = m.positions
+        for rname, pos in results.items():
+            err = (pos[..., 0, :2] - path[1:]).norm(dim=-1)  # (K, F)
+            rec = {
+                "bench": "inpainting", "model": label, "path": pname, "method": rname, "samples": K,
+                "frames": F, "root_err_cm_mean": round(float(err.mean() * 100), 2),
+                "root_err_cm_max": round(float(err.max() * 100), 2),
+                "neck_height_m": round(float(pos[..., neck, 2].mean()), 3),
+                **quality(pos, skeleton, offsets),
+            }  # fmt: skip
+            emit(rec)
+
+
+# --------------------------------------------------------------------------- inbetweening
+
+
+def inbetweening(label, cm, clips, skeleton, offsets, args) -> None:
+    K = args.samples
+    pos_slice = cm.layout.joint_pos
+    J = cm.layout.n_joints
+    cases = [("walk", 10, "jump", 5, 30), ("walk", 10, "jump", 5, 60),
+             ("run", 10, "dance_b", 10, 45), ("walk", 10, "walker/turn_left0", 40, 30)]  # fmt: skip
+    for a, fa, b, fb, N in cases:
+        start = C.clip_frame(clips[a], fa, cm.layout)
+        key = C.clip_frame(clips[b], fb, cm.layout)
+        g = torch.Generator().manual_seed(args.seed)
+        m = C.inbetween(cm, start.expand(K, -1), key, N, g)
+        lerp = C.lerp_inbetween(cm, start, key, N)
+        g = torch.Generator().manual_seed(args.seed)
+        free = rollout(cm.net, start[None], N, K, generator=g, normalizer=cm.normalizer,
+                       schedule=cm.schedule, clip_x0=cm.clip_x0)  # fmt: skip
+        for method, feats, pos in [
+            ("inbetween_eq5", m.features, m.positions),
+            ("linear_interpolation", lerp.features[None], lerp.positions[None]),
+            ("random_sampling", free.features[0], free.positions[0]),
+        ]:
+            err = (feats[:, -1, pos_slice] - key[pos_slice]).unflatten(-1, (J, 3)).norm(dim=-1)
+            acc = pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2]  # (K, N-2, J, 3)
+            emit({
+                "bench": "inbetweening", "model": label, "from": f"{a}@{fa}", "to": f"{b}@{fb}",
+                "N": N,
+                "method": method, "samples": int(feats.shape[0]),
+                "keyframe_err_cm": round(float(err.mean() * 100), 2),
+                "keyframe_err_cm_max": round(float(err.mean(-1).max() * 100), 2),
+                "root_vel_err_cm": round(float((feats[:, -1, :2] - key[:2]).norm(dim=-1).mean()
+                                               * 100), 2),
+                "max_Jnt.Accel": round(float(acc.norm(dim=-1).mean(-1).max() * 100), 3),
+                **quality(pos, skeleton, offsets),
+            })  # fmt: skip
+
+
+# --------------------------------------------------------------------------- speed
+
+
+def speed(cm, start, args) -> None:
+    F = args.speed_frames
+    goal = torch.tensor([3.0, 3.0])
+    path = C.circle_path(2.0, 1.0, F, cm.fps)
+    con = C.root_path_targets(cm.layout, path)
+    key = start.clone()
+    cases = {
+        "rollout": lambda g: rollout(cm.net, start[None], F, 1, generator=g,
+                                     normalizer=cm.normalizer, schedule=cm.schedule,
+                                     clip_x0=cm.clip_x0),
+        "beam_search_P32_H1": lambda g: C.beam_search(cm, start, C.target_score(goal), F,
+                                                      pool=32, horizon=1, generator=g),
+        "beam_search_P100_H1": lambda g: C.beam_search(cm, start, C.target_score(goal), F,
+                                                       pool=100, horizon=1, generator=g),
+        "beam_search_P16_H4": lambda g: C.beam_search(cm, start, C.target_score(goal), F,
+                                                      pool=16, horizon=4, generator=g),
+        "inpaint_root_path": lambda g: C.inpaint(cm, start, con.targets, con.mask, g,
+                                                 start_pose=con.start_pose),
+        "inbetween": lambda g: C.inbetween(cm, start, key, F, g),
+    }  # fmt: skip
+    for name, fn in cases.items():
+        times = []
+        for r in range(args.repeats):
+            t0 = time.perf_counter()
+            fn(torch.Generator().manual_seed(r))
+            times.append((time.perf_counter() - t0) / F * 1000)
+        emit({"bench": "speed", "technique": name, "frames": F, "batch": 1,
+              "denoising_steps": cm.schedule.T, "ms_per_frame_min": round(min(times), 2),
+              "ms_per_frame_median": round(float(np.median(times)), 2), **hardware()})  # fmt: skip
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--amdm", default="pretrained:amdm_book")
+    p.add_argument("--mvae", default="pretrained:mvae_book")
+    p.add_argument("--mse", default="pretrained:mse_book")
+    p.add_argument("--extra", nargs="*", default=[], metavar="NAME=PATH",
+                   help="more models (diffusion ones also inpaint and inbetween)")  # fmt: skip
+    p.add_argument("--only", nargs="+", default=["target", "inpaint", "inbetween", "speed"],
+                   choices=["target", "inpaint", "inbetween", "speed"])  # fmt: skip
+    p.add_argument("--runs", type=int, default=32, help="target-reaching runs per model")
+    p.add_argument("--pool", type=int, default=32, help="P (the paper: 100)")
+    p.add_argument("--horizon", type=int, default=1, help="H (the paper: 1)")
+    p.add_argument("--max-frames", type=int, default=450, help="frames before a run fails")
+    p.add_argument("--samples", type=int, default=8, help="samples per inpainting case")
+    p.add_argument("--inpaint-frames", type=int, default=240)
+    p.add_argument("--speed-frames", type=int, default=30)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--save-paths", default=None, help="save root paths to PREFIX_<model>.npy")
+    p.add_argument("--quick", action="store_true", help="16 runs, 300 frames, 4 samples")
+    args = p.parse_args()
+    if args.quick:
+        args.runs, args.max_frames, args.samples = 16, 300, 4
+        args.inpaint_frames, args.repeats = 120, 2
+    torch.set_num_threads(args.threads)
+    clips = data.load_clips(fps=30, loop_frames=150)
+    skeleton = clips.skeleton
+    walk_pos = torch.cat([c.fk()[0] for c in clips if "walk" in c.name])
+    offsets = metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices)
+    amdm = C.as_control_model(load(args.amdm))
+    start = C.clip_frame(clips[START_CLIP], START_FRAME, amdm.layout)
+    emit({"bench": "config", **vars(args), **hardware()})
+    data_pos = torch.stack([c.fk()[0][:150].float() for c in clips
+                            if "walk" in c.name and c.n_frames >= 150])  # fmt: skip
+    emit({"bench": "data_reference", "clips": "walking", **quality(data_pos, skeleton, offsets)})
+    extras = {}
+    for item in args.extra:
+        name, spec = item.split("=", 1)
+        extras[name] = C.as_control_model(load(spec))
+    diffusion = {"amdm": amdm, **{k: v for k, v in extras.items() if v.is_diffusion}}
+    if "target" in args.only:
+        models = {"amdm": amdm, "mvae": C.as_control_model(load(args.mvae))}
+        mse = load(args.mse)
+        models["mse"] = C.as_control_model(mse)
+        models["mse+gauss"] = C.as_control_model(mse, noise=C.regressor_noise(mse, clips))
+        models.update(extras)
+        target_reaching(models, start, args)
+    for label, cm in diffusion.items():
+        if "inpaint" in args.only:
+            inpainting(label, cm, start, skeleton, offsets, args)
+        if "inbetween" in args.only:
+            inbetweening(label, cm, clips, skeleton, offsets, args)
+    if "speed" in args.only:
+        speed(amdm, start, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,307 @@
+"""What every control technique shares: the model it steers, one sampled frame, the result.
+
+:class:`ControlModel` gathers what sampling a frame needs (network, normalizer, noise schedule,
+``predicts``, ``clip_x0``), read from a loaded :class:`~minimdm.checkpoint.Checkpoint` the way
+:func:`minimdm.sampling.rollout` reads it. :func:`sample_frame` draws one frame through
+:func:`minimdm.sampling.next_frame`, i.e. through the one sampler loop of
+:mod:`minimdm.diffusion`; the techniques differ only in the hook and the start of the chain they
+hand it. :class:`Motion` is what they return.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from minimdm.checkpoint import Checkpoint, load_checkpoint
+from minimdm.diffusion import Hook, NoiseSchedule
+from minimdm.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
+from minimdm.models import MVAE, MLPDenoiser, MLPRegressor
+from minimdm.sampling import NonFiniteFrameError, next_frame
+from minimdm.skeleton import Skeleton
+
+__all__ = ["ControlModel", "as_control_model", "regressor_noise", "sample_frame", "Motion"]
+
+
+@dataclass
+class ControlModel:
+    """A trained next-frame model and everything needed to sample from it."""
+
+    net: nn.Module
+    """The network: an MLPDenoiser (A-MDM), an MVAE or an MLPRegressor."""
+    normalizer: Normalizer | None = None
+    """Feature standardisation; None if the network works in feature units."""
+    schedule: NoiseSchedule | None = None
+    """The denoiser's noise schedule (None for the baselines)."""
+    predicts: str = "eps"
+    """What the denoiser outputs: 'eps' or 'x0'."""
+    clip_x0: float | None = None
+    """Clamp of the clean estimate at every step (normalized units)."""
+    steps: int | None = None
+    """Denoising steps per frame (None: all T, DDPM; fewer: DDIM)."""
+    eta: float = 1.0
+    """DDIM stochasticity when ``steps`` < T."""
+    noise: float | Tensor = 0.0
+    """Std (normalized units, scalar or (D,)) of Gaussian noise added to a regressor's output."""
+    layout: FeatureLayout | None = None
+    """The feature layout (joint names, fps), from the checkpoint."""
+    skeleton: Skeleton | None = None
+    """The skeleton, from the checkpoint."""
+
+    @property
+    def is_diffusion(self) -> bool:
+        return isinstance(self.net, MLPDenoiser)
+
+    @property
+    def dim(self) -> int:
+        """D, the frame dimension."""
+        cfg = getattr(self.net, "config", None)
+        return int(getattr(cfg, "x_dim", None) or self.net.x_dim)
+
+    @property
+    def fps(self) -> float:
+        return self.layout.fps if self.layout is not None else 30.0
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return self.normalizer.normalize(x) if self.normalizer is not None else x
+
+    def denormalize(self, x: Tensor) -> Tensor:
+        return self.normalizer.denormalize(x) if self.normalizer is not None else x
+
+
+def as_control_model(
+    model: Checkpoint | ControlModel | nn.Module | str | os.PathLike,
+    *,
+    normalizer: Normalizer | None = None,
+    schedule: NoiseSchedule | None = None,
+    predicts: str | None = None,
+    clip_x0: float | None | str = "checkpoint",
+    steps: int | None = None,
+    eta: float = 1.0,
+    noise: float | Tensor = 0.0,
+    device: torch.device | str | None = None,
+) -> ControlModel:
+    """Resolve a Checkpoint, a checkpoint path, a bare network or a ControlModel.
+
+    From a checkpoint the normalizer, schedule, ``predicts``, ``clip_x0``, layout and skeleton
+    come from its metadata (explicit arguments win). A bare denoiser needs ``schedule``.
+    ``noise`` (regressors only) turns the deterministic MSE baseline into a Gaussian
+    :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`, the likelihood that MSE training fits, so that
+    a pool of its candidates can differ.
+    """
+    if isinstance(model, ControlModel):
+        return model
+    if isinstance(model, (str, os.PathLike)):
+        model = load_checkpoint(model, device=device or "cpu")
+    layout = skeleton = None
+    if isinstance(model, Checkpoint):
+        meta = model.metadata
+        diff = meta.get("diffusion") or {}
+        if normalizer is None and model.normalizer is not None:
+            normalizer = Normalizer.from_dict(model.normalizer)
+        if schedule is None and diff:
+            schedule = model.schedule(device or "cpu")
+        predicts = predicts or diff.get("predicts")
+        if clip_x0 == "checkpoint":
+            clip_x0 = diff.get("clip_x0")
+        if model.feature_layout is not None:
+            layout = FeatureLayout.from_dict(model.feature_layout)
+        if model.skeleton is not None:
+            skeleton = Skeleton.from_dict(model.skeleton)
+        net = model.model
+    elif isinstance(model, nn.Module):
+        net = model
+    else:
+        raise ValueError(
+            "model must be a Checkpoint, a checkpoint path, an nn.Module or a ControlModel, "
+            f"got {type(model).__name__}"
+        )
+    if not isinstance(net, (MLPDenoiser, MVAE, MLPRegressor)):
+        raise ValueError(
+            f"model must be an MLPDenoiser, MVAE or MLPRegressor, got {type(net).__name__}"
+        )
+    if clip_x0 == "checkpoint":
+        clip_x0 = None
+    if isinstance(net, MLPDenoiser):
+        predicts = predicts or net.predicts
+        if schedule is None:
+            raise ValueError("schedule is required to sample from a bare denoiser")
+    if device is not None:
+        net = net.to(device)
+    net.eval()
+    if schedule is not None:
+        schedule = schedule.to(next(net.parameters()).device)
+        if steps is not None and not 1 <= steps <= schedule.T:
+            raise ValueError(f"steps must lie in [1, T={schedule.T}], got {steps}")
+    if isinstance(noise, Tensor) and noise.numel() > 1:
+        noise = noise.to(next(net.parameters()).device)
+    return ControlModel(
+        net, normalizer, schedule, predicts or "eps", clip_x0, steps, eta, noise, layout, skeleton
+    )
+
+
+@torch.no_grad()
+def regressor_noise(checkpoint: Checkpoint, clips: Any) -> Tensor:
+    """Per-dimension residual std (D,) of a regressor on ``clips``, in normalized units.
+
+    MSE training fits :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`; this is the maximum
+    likelihood :math:`\\sigma` per dimension, to pass as ``as_control_model(..., noise=...)`` so
+    that the deterministic baseline proposes distinct candidates (A-MDM §7.3.3 compares models
+    under the same search).
+    """
+    from minimdm.features import encode
+
+    if not isinstance(checkpoint.model, MLPRegressor) or checkpoint.normalizer is None:
+        raise ValueError("checkpoint must hold an MLPRegressor and its normalizer")
+    norm = Normalizer.from_dict(checkpoint.normalizer)
+    net = checkpoint.model
+    res = []
+    for c in clips:
+        x = norm.normalize(encode(c)).to(next(net.parameters()).device)  # (F, D)
+        res.append((net(x[:-1]) - x[1:]).cpu())
+    return torch.cat(res).std(dim=0)
+
+
+def sample_frame(
+    cm: ControlModel,
+    cond: Tensor,
+    generator: torch.Generator | None = None,
+    hook: Hook | None = None,
+    t_start: int | None = None,
+    x_start: Tensor | None = None,
+    frame: int | None = None,
+) -> Tensor:
+    """One frame :math:`x_f` (B, D) from :math:`x_{f-1}` (B, D), in normalized space.
+
+    Calls :func:`minimdm.sampling.next_frame` (the sampler of :mod:`minimdm.diffusion`) with
+    the technique's ``hook`` and chain start; raises :class:`NonFiniteFrameError` naming
+    ``frame`` (1-based) if the result holds NaN/Inf.
+    """
+    x = next_frame(
+        cm.net,
+        cond,
+        generator,
+        cm.schedule,
+        cm.steps,
+        cm.eta,
+        cm.predicts,
+        cm.clip_x0,
+        hook,
+        t_start=t_start,
+        x_start=x_start,
+    )
+    if isinstance(cm.net, MLPRegressor) and (torch.as_tensor(cm.noise) != 0).any():
+        eps = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+        x = x + torch.as_tensor(cm.noise, device=x.device, dtype=x.dtype) * eps
+    finite = torch.isfinite(x).all(1)
+    if not finite.all():
+        b = int((~finite).nonzero()[0])
+        where = f"frame {frame}" if frame is not None else "a frame"
+        raise NonFiniteFrameError(f"sampling produced a non-finite {where} for character {b}")
+    return x
+
+
+def as_start(cm: ControlModel, start: Any) -> tuple[Tensor, bool]:
+    """``start`` (D,) or (B, D), feature units -> ((B, D) float32 on the model device, batched)."""
+    x = torch.as_tensor(start, dtype=torch.float32)
+    batched = x.dim() == 2
+    if x.dim() == 1:
+        x = x[None]
+    D = cm.dim
+    if x.dim() != 2 or x.shape[1] != D:
+        raise ValueError(f"start must have shape ({D},) or (B, {D}), got {tuple(x.shape)}")
+    if not torch.isfinite(x).all():
+        bad = (~torch.isfinite(x)).any(1).nonzero()[0].item()
+        raise ValueError(f"start must be finite, but character {bad} holds NaN/Inf")
+    return x.to(cm.device), batched
+
+
+def as_start_pose(start_pose: Any, B: int) -> StartPose:
+    """A StartPose with xy (B, 2) and heading (B,) float64 (default: origin, heading 0)."""
+    if start_pose is None:
+        return StartPose(
+            torch.zeros(B, 2, dtype=torch.float64), torch.zeros(B, dtype=torch.float64)
+        )
+    sp = start_pose if isinstance(start_pose, StartPose) else StartPose(**start_pose)
+    xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
+    heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
+    if xy.shape[0] not in (1, B) or heading.shape[0] not in (1, B):
+        raise ValueError(
+            f"start_pose must have xy ({B}, 2) or (2,) and heading ({B},) or (), "
+            f"got {tuple(xy.shape)} and {tuple(heading.shape)}"
+        )
+    if not (torch.isfinite(xy).all() and torch.isfinite(heading).all()):
+        raise ValueError("start_pose must be finite, but it holds NaN/Inf")
+    return StartPose(xy.expand(B, 2).clone(), heading.expand(B).clone())
+
+
+def check_count(name: str, value: Any, minimum: int = 1) -> int:
+    """``ValueError`` unless ``value`` is an integer >= ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+@dataclass
+class Motion:
+    """A controlled motion of F frames x_1..x_F (x_0 is the start state).
+
+    Leading dimensions mirror ``start``: with one start state (D,) the fields are per frame,
+    e.g. ``positions`` is (F, J, 3); with a batch (B, D) they gain a leading B.
+    """
+
+    features: Tensor
+    """([B,] F, D) frames in feature units (``minimdm.features.encode``)."""
+    normalized: Tensor
+    """([B,] F, D) the same frames in the model's normalized space."""
+    positions: Tensor
+    """([B,] F, J, 3) global joint positions in metres, z-up."""
+    root_xy: Tensor
+    """([B,] F, 2) root ground positions in metres."""
+    heading: Tensor
+    """([B,] F) root headings in radians."""
+    start_pose: StartPose
+    """Root ground position and heading at the start state, where decoding starts."""
+    info: dict[str, Any] = field(default_factory=dict)
+    """Technique-specific extras (scores, frames done, t_start per frame...)."""
+
+    @property
+    def n_frames(self) -> int:
+        return self.features.shape[-2]
+
+    def numpy(self) -> np.ndarray:
+        """The global joint positions as a numpy array, ([B,] F, J, 3)."""
+        return self.positions.numpy()
+
+    @classmethod
+    def from_normalized(
+        cls,
+        cm: ControlModel,
+        normalized: Tensor,
+        start_pose: StartPose,
+        batched: bool,
+        info: dict[str, Any] | None = None,
+        features: Tensor | None = None,
+    ) -> Motion:
+        """Denormalize ``normalized`` (B, F, D), decode it from ``start_pose`` (B), squeeze."""
+        normalized = normalized.detach().float().cpu()
+        if features is None:
+            features = cm.denormalize(normalized)
+        f64 = features.double()
+        sp = StartPose(start_pose.xy.cpu(), start_pose.heading.cpu())
+        positions = decode(f64, sp).float()  # (B, F, J, 3)
+        xy, heading = decode_root(f64, sp)  # (B, F, 2), (B, F)
+        out = [normalized, features.float(), positions, xy.float(), heading.float()]
+        if not batched:
+            out = [t[0] for t in out]
+            sp = StartPose(sp.xy[0], sp.heading[0])
+        return cls(out[1], out[0], out[2], out[3], out[4], sp, dict(info or {}))

@@ -1,0 +1,258 @@
+"""Spatial inpainting and keyframe inbetweening (A-MDM §4.3), frame after frame.
+
+Both run the ordinary auto-regressive loop; they differ from random sampling only in what they
+hand the sampler of each frame:
+
+* :func:`inpaint` passes the hook of A-MDM eq. 4 (:func:`~minimdm.control.hooks.inpaint_hook`),
+  which overwrites the user's features with their noised targets after every reverse step;
+* :func:`inbetween` starts frame f's chain from the keyframe noised to level
+  :math:`t_0 = (1 - f/N)\\,t_{max}` (eq. 5, :func:`~minimdm.control.hooks.inbetween_t_start`).
+
+:func:`lerp_inbetween` is the baseline: linear interpolation in feature space.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from minimdm.checkpoint import Checkpoint
+from minimdm.diffusion import q_sample
+from minimdm.features import StartPose
+
+from .core import (
+    ControlModel,
+    Motion,
+    as_control_model,
+    as_start,
+    as_start_pose,
+    check_count,
+    sample_frame,
+)
+from .hooks import inbetween_t_start, inpaint_hook
+
+__all__ = ["inpaint", "inbetween", "lerp_inbetween", "check_targets"]
+
+ModelLike = Checkpoint | ControlModel | nn.Module | str | os.PathLike
+
+
+def check_targets(targets: Any, mask: Any, D: int, B: int) -> tuple[Tensor, Tensor]:
+    """Validate targets ([B,] F, D) and mask ([B,] [F,] D): -> (B, F, D) float, bool.
+
+    Entries where the mask is 0 are ignored and may be NaN; masked ones must be finite.
+    """
+    x = torch.as_tensor(targets, dtype=torch.float32)
+    if x.dim() not in (2, 3) or x.shape[-1] != D:
+        raise ValueError(f"targets must have shape (F, {D}) or (B, F, {D}), got {tuple(x.shape)}")
+    if x.dim() == 3 and x.shape[0] not in (1, B):
+        raise ValueError(f"targets must have batch size {B} or 1, got {tuple(x.shape)}")
+    x = x.reshape(-1, *x.shape[-2:]).expand(B, -1, -1)  # (B, F, D)
+    F = x.shape[1]
+    if F < 1:
+        raise ValueError("targets must hold at least one frame")
+    m = torch.as_tensor(mask)
+    if m.dtype.is_floating_point and not ((m == 0) | (m == 1)).all():
+        raise ValueError("mask must be binary (0/1 or bool)")
+    if m.dim() == 0 or m.shape[-1] != D:
+        raise ValueError(
+            f"mask must have last dim D={D} (the feature dimension), got shape {tuple(m.shape)}"
+        )
+    if m.dim() >= 2 and m.shape[-2] not in (1, F):
+        raise ValueError(
+            f"mask must have {F} frames (one per target frame) or 1, got shape {tuple(m.shape)}"
+        )
+    if m.dim() == 3 and m.shape[0] not in (1, B):
+        raise ValueError(f"mask must have batch size {B} or 1, got shape {tuple(m.shape)}")
+    if m.dim() > 3:
+        raise ValueError(f"mask must have shape (D,), (F, D) or (B, F, D), got {tuple(m.shape)}")
+    m = m.to(torch.bool).reshape((1,) * (3 - m.dim()) + tuple(m.shape)).expand(B, F, D)
+    bad = m & ~torch.isfinite(x)
+    if bad.any():
+        b, f, d = bad.nonzero()[0].tolist()
+        raise ValueError(
+            f"targets hold NaN/Inf where the mask is set: character {b}, frame {f + 1}, feature {d}"
+        )
+    return torch.where(m, x, torch.zeros(())), m
+
+
+@torch.no_grad()
+def inpaint(
+    model: ModelLike,
+    start: Tensor,
+    targets: Tensor,
+    mask: Tensor,
+    generator: torch.Generator | None = None,
+    *,
+    start_pose: StartPose | dict | None = None,
+    t_stop: int | Tensor = -1,
+    progress: bool = False,
+) -> Motion:
+    """Spatial inpainting (A-MDM §4.3, eq. 4): sample F frames that keep the masked features.
+
+    Args:
+        model: a loaded Checkpoint (normalizer, schedule, predicts, clip_x0 come from it), a
+            path, a :class:`ControlModel` or a bare denoiser.
+        start: (D,) or (B, D) start state x_0, feature units.
+        targets: (F, D) or (B, F, D) desired features :math:`\\tilde x_1..\\tilde x_F` in
+            feature units (e.g. from :func:`~minimdm.control.targets.root_path_targets`).
+            Entries outside the mask are ignored (NaN allowed there).
+        mask: (D,), (F, D) or (B, F, D), 1/True where a feature is specified.
+        generator: randomness of the chains and of the noised targets.
+        start_pose: root ground position and heading of the start (a path's constraint
+            carries its own).
+        t_stop: the lowest diffusion level at which targets are imposed (-1: every step, an
+            exact constraint), one for all frames or one per frame (F,): the buffer frames of
+            A-MDM Fig. 4 stop early.
+
+    Returns:
+        A :class:`Motion` of F frames; its masked features equal the targets when
+        ``t_stop = -1``.
+    """
+    cm = as_control_model(model)
+    if not cm.is_diffusion:
+        raise ValueError(f"inpainting needs a diffusion model, got {type(cm.net).__name__}")
+    x0, batched = as_start(cm, start)
+    B, D = x0.shape
+    tgt, m = check_targets(targets, mask, D, B)  # (B, F, D)
+    F = tgt.shape[1]
+    stops = torch.as_tensor(t_stop, dtype=torch.long).reshape(-1)
+    if stops.numel() not in (1, F):
+        raise ValueError(f"t_stop must be an int or hold F={F} values, got {stops.numel()}")
+    stops = stops.expand(F)
+    sp = as_start_pose(start_pose, B)
+    tgt_n = cm.normalize(tgt).to(cm.device)  # (B, F, D)
+    m = m.to(cm.device)
+    cond = cm.normalize(x0)
+    out = torch.empty(B, F, D)
+    for f in tqdm(range(F), disable=not progress, desc="inpaint", unit="frame"):
+        hook = inpaint_hook(cm.schedule, tgt_n[:, f], m[:, f], generator, int(stops[f]))
+        cond = sample_frame(cm, cond, generator, hook=hook, frame=f + 1)
+        out[:, f] = cond.float().cpu()
+    feats = cm.denormalize(out)
+    exact = (stops == -1)[None, :, None] & m.cpu()
+    feats = torch.where(exact, tgt, feats)  # undo the normalize/denormalize rounding
+    return Motion.from_normalized(cm, out, sp, batched, {"t_stop": stops}, features=feats)
+
+
+def _keyframes(keyframe: Any, at: Any, n_frames: int, D: int, B: int) -> tuple[Tensor, list[int]]:
+    """-> keyframes (B, K, D) and their frames [a_1 < ... < a_K <= n_frames]."""
+    k = torch.as_tensor(keyframe, dtype=torch.float32)
+    if k.dim() == 1:
+        k = k[None]
+    if k.dim() not in (2, 3) or k.shape[-1] != D:
+        raise ValueError(
+            f"keyframe must have shape ({D},), (K, {D}) or (B, K, {D}) (frames of this model's "
+            f"skeleton and feature layout), got {tuple(k.shape)}"
+        )
+    if not torch.isfinite(k).all():
+        raise ValueError("keyframe must be finite, but it holds NaN/Inf")
+    if k.dim() == 3 and k.shape[0] not in (1, B):
+        raise ValueError(f"keyframe must have batch size {B} or 1, got {tuple(k.shape)}")
+    k = k.reshape(-1, *k.shape[-2:]).expand(B, -1, -1)
+    K = k.shape[1]
+    ats = [n_frames] if at is None and K == 1 else at
+    if ats is None:
+        raise ValueError(f"at must give the frame of each of the K={K} keyframes")
+    ats = [int(a) for a in torch.as_tensor(ats).reshape(-1).tolist()]
+    if len(ats) != K:
+        raise ValueError(f"at must hold one frame per keyframe (K={K}), got {len(ats)}")
+    prev = 0
+    for a in ats:
+        if a <= prev:
+            raise ValueError(f"keyframe frames must be increasing and >= 1, got {ats}")
+        if a > n_frames:
+            raise ValueError(
+                f"keyframe at frame {a} lies beyond the horizon: frames run 1..n_frames={n_frames}"
+            )
+        prev = a
+    return k, ats
+
+
+@torch.no_grad()
+def inbetween(
+    model: ModelLike,
+    start: Tensor,
+    keyframe: Tensor,
+    n_frames: int,
+    generator: torch.Generator | None = None,
+    *,
+    at: int | list[int] | None = None,
+    start_pose: StartPose | dict | None = None,
+    progress: bool = False,
+) -> Motion:
+    """Keyframe inbetweening (A-MDM §4.3, eq. 5, Fig. 5).
+
+    Frame f between the previous keyframe (or the start, at frame 0) and the next keyframe
+    :math:`\\tilde x_N`, N frames apart, starts its denoising chain from :math:`\\tilde x_N`
+    noised to the level :math:`t_0 = (1 - f/N)\\,t_{max}` (:func:`inbetween_t_start`): early
+    frames run almost the whole chain and may leave the keyframe; the last ones run few steps
+    and land on it. Frames after the last keyframe are sampled freely.
+
+    Args:
+        model: a loaded Checkpoint or anything :func:`as_control_model` takes; a diffusion
+            model sampled with DDPM (all T steps).
+        start: (D,) or (B, D) start state x_0, feature units.
+        keyframe: (D,), (K, D) or (B, K, D) keyframes in feature units, e.g. a frame of another
+            clip (:func:`~minimdm.control.targets.clip_frame`).
+        n_frames: frames to generate, >= 1.
+        at: frame of each keyframe, increasing, in 1..n_frames (default: ``n_frames``).
+        start_pose: root ground position and heading of the start.
+
+    Returns:
+        A :class:`Motion`; ``info["t_start"]`` is each frame's starting level (-1: free),
+        ``info["at"]`` the keyframes' frames.
+    """
+    cm = as_control_model(model)
+    if not cm.is_diffusion:
+        raise ValueError(f"inbetweening needs a diffusion model, got {type(cm.net).__name__}")
+    if cm.steps is not None and cm.steps != cm.schedule.T:
+        raise ValueError(f"inbetweening needs DDPM sampling (steps=None), got steps={cm.steps}")
+    n_frames = check_count("n_frames", n_frames)
+    x0, batched = as_start(cm, start)
+    B, D = x0.shape
+    keys, ats = _keyframes(keyframe, at, n_frames, D, B)
+    keys_n = cm.normalize(keys).to(cm.device)  # (B, K, D)
+    sp = as_start_pose(start_pose, B)
+    T = cm.schedule.T
+    cond = cm.normalize(x0)
+    out = torch.empty(B, n_frames, D)
+    t_starts, k, prev = [], 0, 0
+    for f in tqdm(range(1, n_frames + 1), disable=not progress, desc="inbetween", unit="frame"):
+        if k < len(ats):
+            t0 = inbetween_t_start(f - prev, ats[k] - prev, T)
+            x_start = q_sample(cm.schedule, keys_n[:, k], t0, generator=generator)  # (B, D)
+            cond = sample_frame(cm, cond, generator, t_start=t0, x_start=x_start, frame=f)
+            if f == ats[k]:
+                k, prev = k + 1, f
+        else:
+            t0 = -1
+            cond = sample_frame(cm, cond, generator, frame=f)
+        t_starts.append(t0)
+        out[:, f - 1] = cond.float().cpu()
+    info = {"t_start": t_starts, "at": ats, "keyframes": keys if batched else keys[0]}
+    return Motion.from_normalized(cm, out, sp, batched, info)
+
+
+def lerp_inbetween(
+    model: ModelLike,
+    start: Tensor,
+    keyframe: Tensor,
+    n_frames: int,
+    *,
+    start_pose: StartPose | dict | None = None,
+) -> Motion:
+    """The baseline: linear interpolation in feature space, :math:`x_f = x_0 + \\frac fN
+    (\\tilde x_N - x_0)`, f = 1..N, decoded like a model's frames (no model is run)."""
+    cm = as_control_model(model)
+    n_frames = check_count("n_frames", n_frames)
+    x0, batched = as_start(cm, start)
+    B, D = x0.shape
+    keys, _ = _keyframes(keyframe, None, n_frames, D, B)
+    w = torch.arange(1, n_frames + 1, dtype=torch.float32)[None, :, None] / n_frames  # (1, N, 1)
+    feats = x0.cpu()[:, None] + w * (keys[:, 0:1] - x0.cpu()[:, None])  # (B, N, D)
+    sp = as_start_pose(start_pose, B)
+    return Motion.from_normalized(cm, cm.normalize(feats), sp, batched, {}, features=feats)
