@@ -23,20 +23,33 @@ CHECKPOINT_DIR = Path(
 
 
 def pretrained(name: str, device: str = "cpu"):
-    """Load a shipped checkpoint by name, e.g. ``"amdm_book"``, ``"mse_book"``, ``"mvae_book"``.
+    """Load a shipped checkpoint by name, e.g. ``"amdm_book"`` or ``"amdm_steps/T5"``.
 
-    Each lives in ``checkpoints/<name>/`` and names the config and command that made it.
+    Each lives in ``checkpoints/<name>/`` and records the command that made it in its metadata
+    (``checkpoint.metadata["command"]``).
     """
     from minimdm.checkpoint import load_checkpoint
 
     folder = CHECKPOINT_DIR / name
     if not (folder / "model.safetensors").exists():
-        have = sorted(p.parent.name for p in CHECKPOINT_DIR.glob("*/model.safetensors"))
+        have = sorted(
+            p.parent.relative_to(CHECKPOINT_DIR).as_posix()
+            for p in CHECKPOINT_DIR.glob("**/model.safetensors")
+        )
         raise FileNotFoundError(
             f"no shipped checkpoint named {name!r} in {CHECKPOINT_DIR}; available: {have}. "
-            f"Make it with: minimdm train configs/{name}.yaml"
+            f"{_make_hint(name)}"
         )
     return load_checkpoint(folder, device=device)
+
+
+def _make_hint(name: str) -> str:
+    """How to make a missing checkpoint, when a config of that name says so."""
+    config = CHECKPOINT_DIR.parent / "configs" / f"{name}.yaml"
+    if not config.exists():
+        return "Each shipped checkpoint's metadata names the command that made it."
+    trainer = "python -m minimdm.aamdm train" if name.startswith("aamdm") else "minimdm train"
+    return f"Make it with: {trainer} configs/{name}.yaml"
 
 
 def __getattr__(name: str):

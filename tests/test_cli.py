@@ -142,6 +142,16 @@ def test_format_table_and_pretrained_errors(tmp_path, monkeypatch):
     lines = text.splitlines()
     assert lines[0].split() == ["model", "APD", "FS"]
     assert "1.23 ± 0.50" in lines[1] and lines[1].rstrip().endswith("-")
-    monkeypatch.setattr(minimdm, "CHECKPOINT_DIR", tmp_path)
-    with pytest.raises(FileNotFoundError, match="minimdm train configs/nope.yaml"):
+    ckpts, configs = tmp_path / "checkpoints", tmp_path / "configs"
+    (ckpts / "family" / "T5").mkdir(parents=True)
+    (ckpts / "family" / "T5" / "model.safetensors").touch()
+    configs.mkdir()
+    (configs / "amdm_x.yaml").touch()
+    (configs / "aamdm_x.yaml").touch()
+    monkeypatch.setattr(minimdm, "CHECKPOINT_DIR", ckpts)
+    with pytest.raises(FileNotFoundError, match=r"available: \['family/T5'\]\. Each shipped"):
         minimdm.pretrained("nope")
+    with pytest.raises(FileNotFoundError, match="Make it with: minimdm train configs/amdm_x.yaml"):
+        minimdm.pretrained("amdm_x")
+    with pytest.raises(FileNotFoundError, match=r"python -m minimdm\.aamdm train configs/aamdm_x"):
+        minimdm.pretrained("aamdm_x")
