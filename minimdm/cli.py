@@ -141,7 +141,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
             data.save_bvh(path, clip)
     else:
         labels = [f"sample {k}" for k in range(args.samples)]
-        viz.animate(list(pos), skeleton, labels=labels, out=out)
+        viz.animate(list(pos), skeleton, labels=labels, colors=viz.GENERATED, out=out)
     print(json.dumps({"out": str(out), "frames": args.frames, "samples": args.samples}))
     return 0
 
