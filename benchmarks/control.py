@@ -24,12 +24,11 @@ Prints one JSON line per measurement. Not a test.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import time
 
 import numpy as np
 import torch
+from common import emit, hardware
 
 from minimdm import control as C
 from minimdm import data, metrics
@@ -39,15 +38,6 @@ from minimdm.sampling import rollout
 START_CLIP, START_FRAME = "walker/0walk_forward", 20
 """The fixed start state: a walking pose at the origin, heading +x, where the data branch
 (walk on, turn left, turn right: chapter 3)."""
-
-
-def emit(record: dict) -> None:
-    print(json.dumps(record), flush=True)
-
-
-def hardware() -> dict:
-    return {"torch": torch.__version__, "cpu_count": os.cpu_count(),
-            "threads": torch.get_num_threads()}  # fmt: skip
 
 
 def load(spec: str):

@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 
 import torch
+from common import hardware
 
 from minimdm.aamdm_eval import dataset_quality, guidance_study, motion_comparison
 from minimdm.aamdm_train import AAMDMTrainConfig, load_motion_data
@@ -58,9 +58,7 @@ def main() -> None:
     amdm = load_amdm(args.amdm, args.device)
     aamdm = load_checkpoint(args.aamdm, device=args.device).model
     data = load_motion_data(AAMDMTrainConfig(**_data_fields(aamdm)))
-    hw = {"torch": torch.__version__, "device": args.device, "cpu_count": os.cpu_count()}
-    if args.device == "cuda":
-        hw["gpu"] = torch.cuda.get_device_name()
+    hw = hardware(args.device)
     rows, _ = motion_comparison(
         amdm, aamdm, data, args.frames, args.samples, seed=args.seed,
         fps_frames=args.fps_frames, device=args.device,

@@ -25,21 +25,16 @@ from pathlib import Path
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")  # before vtk loads
 
-import torch  # noqa: E402
+
+from common import hardware  # noqa: E402
 
 from minimdm import viz  # noqa: E402
 from minimdm.data import load_clips  # noqa: E402
 
 
-def hardware() -> dict:
-    info = {
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "processor": platform.processor() or None,
-        "cpu_count": os.cpu_count(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
+def render_hardware() -> dict:
+    """:func:`common.hardware` plus the platform and the rendering stack."""
+    info = {**hardware(), "platform": platform.platform(), "python": platform.python_version()}
     try:
         import matplotlib
 
@@ -109,7 +104,7 @@ def main() -> None:
                     f"{args.format}_bytes": out.stat().st_size,
                 }
                 rows.append(row)
-    hw = hardware()  # after the runs: probing the GPU would warm up pyvista for the cold run
+    hw = render_hardware()  # after the runs: probing the GPU would warm up pyvista for the cold run
     for row in rows:
         print(json.dumps({**row, "hardware": hw}), flush=True)
 

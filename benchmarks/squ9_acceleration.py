@@ -21,26 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 
 import torch
+from common import hardware
 
 from minimdm.ddgan_report import format_table, plot_panels
 from minimdm.ddgan_squ9 import Squ9Study, Squ9StudyConfig, with_budget
-
-
-def hardware(device: str) -> dict:
-    info = {
-        "torch": torch.__version__,
-        "device": device,
-        "cpu_count": os.cpu_count(),
-        "threads": torch.get_num_threads(),
-    }
-    if device.startswith("cuda"):
-        info["gpu"] = torch.cuda.get_device_name(device)
-    return info
 
 
 def main() -> None:

@@ -16,31 +16,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import time
 
 import torch
+from common import hardware, sync
 
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
 from minimdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.toy import Squ9, squ9_metrics, train_denoiser, train_regressor
-
-
-def hardware(device: str) -> dict:
-    info = {
-        "torch": torch.__version__,
-        "device": device,
-        "cpu_count": os.cpu_count(),
-        "threads": torch.get_num_threads(),
-    }
-    if device.startswith("cuda"):
-        info["gpu"] = torch.cuda.get_device_name(device)
-    return info
-
-
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize(device)
 
 
 def quality(sq: Squ9, x_eval: torch.Tensor, x_gen: torch.Tensor) -> dict:
