@@ -2,12 +2,13 @@
 
 Prints one JSON line per row (config, hardware, metrics as mean and std over seeds, in cm):
 
-* ``table1``: A-MDM, MVAE-style and MSE from the same fixed initial states, plus the dataset;
+* ``table1``: A-MDM (x0- and eps-prediction), MVAE-style and MSE from the same fixed initial
+  states, plus the dataset;
 * ``table2``: motion continuation from the last 30 frames of every clip;
 * ``steps``: one model per T in {1, 2, 5, 10, 20, 40, 100} (``checkpoints/amdm_steps/T*``):
   APD, ADE, FS and ms/frame at batch 1, measured in the same run;
 * ``drift``: bone error and root height over a 1,000-frame rollout with and without scheduled
-  sampling (``amdm_book`` vs ``amdm_noss_book``).
+  sampling (``amdm_eps_book`` vs ``amdm_eps_noss_book``; ``amdm_book`` for reference).
 
     python benchmarks/amdm_tables.py                 # the paper's protocol, ~15 min on 2 cores
     python benchmarks/amdm_tables.py --quick         # 4 states x 10 samples x 1 seed
@@ -44,7 +45,12 @@ def main() -> None:
         protocol = evaluation.Protocol()  # 10 states x 50 samples, 150 frames, 3 seeds
     only = set(args.only or ["table1", "table2", "steps", "drift"])
     base = {"protocol": protocol.to_dict(), "hardware": hardware(args.device), "unit": "cm"}
-    names = {"A-MDM": "amdm_book", "MVAE-style": "mvae_book", "MSE": "mse_book"}
+    names = {
+        "A-MDM": "amdm_book",
+        "A-MDM (ε)": "amdm_eps_book",
+        "MVAE-style": "mvae_book",
+        "MSE": "mse_book",
+    }
     models = {k: minimdm.pretrained(v, args.device) for k, v in names.items()}
 
     if "table1" in only:
@@ -76,7 +82,7 @@ def main() -> None:
 
     if "drift" in only:
         state = evaluation.initial_state(models["A-MDM"], "walker/0walk_forward", 20)
-        for name in ("amdm_book", "amdm_noss_book"):
+        for name in ("amdm_book", "amdm_eps_book", "amdm_eps_noss_book"):
             ck = minimdm.pretrained(name, args.device)
             d = evaluation.drift(ck, state, n_frames=1000, n_samples=8, device=args.device)
             emit({"table": "drift", "checkpoint": name, "start": "walker/0walk_forward:20",
