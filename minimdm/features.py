@@ -145,6 +145,28 @@ class StartPose:
     heading: Tensor
     """(...,) heading, radians."""
 
+    @staticmethod
+    def broadcast(start_pose: StartPose | dict | None, n: int) -> StartPose:
+        """``n`` start poses, float64: xy (n, 2), heading (n,); ``None`` is the origin facing +x.
+
+        Accepts one pose (xy (2,), heading ()) or ``n`` of them, as a StartPose or a dict.
+        """
+        if start_pose is None:
+            return StartPose(
+                torch.zeros(n, 2, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
+            )
+        sp = start_pose if isinstance(start_pose, StartPose) else StartPose(**start_pose)
+        xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
+        heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
+        if xy.shape[0] not in (1, n) or heading.shape[0] not in (1, n):
+            raise ValueError(
+                f"start_pose must have xy ({n}, 2) or (2,) and heading ({n},) or (), "
+                f"got {tuple(xy.shape)} and {tuple(heading.shape)}"
+            )
+        if not (torch.isfinite(xy).all() and torch.isfinite(heading).all()):
+            raise ValueError("start_pose must be finite, but it holds NaN/Inf")
+        return StartPose(xy.expand(n, 2).clone(), heading.expand(n).clone())
+
 
 def _as_start(start: StartPose | dict, like: Tensor) -> tuple[Tensor, Tensor]:
     if isinstance(start, dict):

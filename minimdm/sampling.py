@@ -272,18 +272,7 @@ def rollout(
     feats = normalizer.denormalize(normalized) if normalizer is not None else normalized.clone()
     positions = None
     if decode_positions:
-        if start_pose is None:
-            start_pose = StartPose(torch.zeros(C, 2), torch.zeros(C))
-        sp = start_pose if isinstance(start_pose, StartPose) else StartPose(**start_pose)
-        xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
-        heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
-        if xy.shape[0] not in (1, C) or heading.shape[0] not in (1, C):
-            raise ValueError(
-                f"start_pose must have xy (C={C}, 2) and heading (C={C},), "
-                f"got {tuple(xy.shape)} and {tuple(heading.shape)}"
-            )
-        sp = StartPose(
-            xy.expand(C, 2)[:, None].expand(C, K, 2), heading.expand(C)[:, None].expand(C, K)
-        )
+        sp = StartPose.broadcast(start_pose, C)
+        sp = StartPose(sp.xy[:, None].expand(C, K, 2), sp.heading[:, None].expand(C, K))
         positions = decode(feats.double(), sp).float()  # (C, K, F, J, 3)
     return Rollout(features=feats, positions=positions, normalized=normalized)

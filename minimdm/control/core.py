@@ -227,21 +227,7 @@ def as_start(cm: ControlModel, start: Any) -> tuple[Tensor, bool]:
 
 def as_start_pose(start_pose: Any, B: int) -> StartPose:
     """A StartPose with xy (B, 2) and heading (B,) float64 (default: origin, heading 0)."""
-    if start_pose is None:
-        return StartPose(
-            torch.zeros(B, 2, dtype=torch.float64), torch.zeros(B, dtype=torch.float64)
-        )
-    sp = start_pose if isinstance(start_pose, StartPose) else StartPose(**start_pose)
-    xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
-    heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
-    if xy.shape[0] not in (1, B) or heading.shape[0] not in (1, B):
-        raise ValueError(
-            f"start_pose must have xy ({B}, 2) or (2,) and heading ({B},) or (), "
-            f"got {tuple(xy.shape)} and {tuple(heading.shape)}"
-        )
-    if not (torch.isfinite(xy).all() and torch.isfinite(heading).all()):
-        raise ValueError("start_pose must be finite, but it holds NaN/Inf")
-    return StartPose(xy.expand(B, 2).clone(), heading.expand(B).clone())
+    return StartPose.broadcast(start_pose, B)
 
 
 def check_count(name: str, value: Any, minimum: int = 1) -> int:
