@@ -21,9 +21,9 @@ import torch
 from common import emit, hardware, sync
 
 import minimdm
-from minimdm import evaluation
+from minimdm.amdm import evaluation
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
-from minimdm.models import DenoiserConfig, MLPDenoiser
 
 
 @torch.no_grad()

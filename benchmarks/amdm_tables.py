@@ -23,7 +23,7 @@ import time
 from common import emit, hardware
 
 import minimdm
-from minimdm import evaluation
+from minimdm.amdm import evaluation
 
 STEPS = (1, 2, 5, 10, 20, 40, 100)
 

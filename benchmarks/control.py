@@ -31,9 +31,9 @@ import torch
 from common import emit, hardware
 
 from minimdm import control as C
-from minimdm import data, metrics
+from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import load_checkpoint
-from minimdm.sampling import rollout
+from minimdm.motion import data, metrics
 
 START_CLIP, START_FRAME = "walker/0walk_forward", 20
 """The fixed start state: a walking pose at the origin, heading +x, where the data branch

@@ -1,7 +1,7 @@
 """Motion: A-MDM at 5 steps (DDIM) and at its full T, against AAMDM (3 + 2), in one run.
 
 AAMDM §4.1 (Table 1) on the DeepMimic clips. Every method rolls out the same initial frames
-(:data:`minimdm.aamdm_eval.INITIAL_CLIPS`) with the same seed; one JSON line per method:
+(:data:`minimdm.aamdm.eval.INITIAL_CLIPS`) with the same seed; one JSON line per method:
 
     study, method, network_calls, APD, FS, Bone.Err, Jnt.Accel, DIV, FD, fps, rollout_s
 
@@ -24,8 +24,8 @@ import sys
 import torch
 from common import hardware
 
-from minimdm.aamdm_eval import dataset_quality, guidance_study, motion_comparison
-from minimdm.aamdm_train import AAMDMTrainConfig, load_motion_data
+from minimdm.aamdm.eval import dataset_quality, guidance_study, motion_comparison
+from minimdm.aamdm.motion_train import AAMDMTrainConfig, load_motion_data
 from minimdm.checkpoint import load_checkpoint
 
 

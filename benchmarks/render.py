@@ -29,7 +29,7 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")  # befo
 from common import hardware  # noqa: E402
 
 from minimdm import viz  # noqa: E402
-from minimdm.data import load_clips  # noqa: E402
+from minimdm.motion.data import load_clips  # noqa: E402
 
 
 def render_hardware() -> dict:
@@ -53,7 +53,9 @@ def render_hardware() -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--frames", type=int, default=150, help="frames rendered (30 Hz motion)")
-    p.add_argument("--clip", default="walk", help="a looping clip of minimdm.data.CLIP_NAMES")
+    p.add_argument(
+        "--clip", default="walk", help="a looping clip of minimdm.motion.data.CLIP_NAMES"
+    )
     p.add_argument("--size", type=int, nargs=2, default=[320, 240], metavar=("W", "H"))
     p.add_argument("--fps", type=float, default=30.0, help="playback rate written to the file")
     p.add_argument("--format", default="gif", choices=["gif", "mp4"])

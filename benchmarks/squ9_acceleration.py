@@ -1,7 +1,8 @@
 """Squ-9: AAMDM (3 + 2) against DD-GAN alone, the polisher alone, MVAE, MSE, DDPM-5 and DDPM-200.
 
 AAMDM §4.2 (Figure 3) and the ablations of §4.3 (Table 2). Trains every model on the same data
-with fixed seeds (:class:`minimdm.ddgan_squ9.Squ9Study`), samples one transition per evaluation
+with fixed seeds (:class:`minimdm.studies.squ9_acceleration.Squ9Study`), samples one transition per
+evaluation
 condition and prints one JSON line per method:
 
     study, method, coverage, precision, transition_tv, network_calls, ms_per_step,
@@ -27,8 +28,8 @@ import time
 import torch
 from common import hardware
 
-from minimdm.ddgan_report import format_table, plot_panels
-from minimdm.ddgan_squ9 import Squ9Study, Squ9StudyConfig, with_budget
+from minimdm.studies.report import format_table, plot_panels
+from minimdm.studies.squ9_acceleration import Squ9Study, Squ9StudyConfig, with_budget
 
 
 def main() -> None:

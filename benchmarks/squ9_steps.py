@@ -21,9 +21,9 @@ import time
 import torch
 from common import hardware, sync
 
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
-from minimdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
-from minimdm.toy import Squ9, squ9_metrics, train_denoiser, train_regressor
+from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser, train_regressor
 
 
 def quality(sq: Squ9, x_eval: torch.Tensor, x_gen: torch.Tensor) -> dict:

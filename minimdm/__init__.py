@@ -12,7 +12,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__version__ = "0.1.0"
+from minimdm._version import __version__
+
+# The modules that define network kinds register them with minimdm.checkpoint on import, so
+# that load_checkpoint can rebuild every kind the library ships.
+from minimdm.aamdm import model as _aamdm_model  # noqa: F401  kind "ddgan"
+from minimdm.aamdm import motion as _aamdm_motion  # noqa: F401  kind "aamdm_motion"
+from minimdm.aamdm import nets as _aamdm_nets  # noqa: F401  kind "ddgan_generator"
+from minimdm.amdm import models as _amdm_models  # noqa: F401  kinds "amdm", "mse", "mvae"
 
 __all__ = ["__version__", "pretrained", "rollout", "CHECKPOINT_DIR"]
 
@@ -54,7 +61,7 @@ def _make_hint(name: str) -> str:
 
 def __getattr__(name: str):
     if name == "rollout":  # imported lazily: `import minimdm` stays light
-        from minimdm.sampling import rollout
+        from minimdm.amdm.sampling import rollout
 
         return rollout
     raise AttributeError(f"module 'minimdm' has no attribute {name!r}")

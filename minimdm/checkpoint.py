@@ -35,8 +35,7 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import Tensor, nn
 
-import minimdm
-from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm._version import __version__
 
 __all__ = [
     "FORMAT",
@@ -66,22 +65,8 @@ class CheckpointMismatchError(ValueError):
 # Model kinds: how to describe a network in JSON and rebuild it.
 
 
-def _regressor_spec(m: MLPRegressor) -> dict:
-    linears = [layer for layer in m.net if isinstance(layer, nn.Linear)]
-    width = linears[0].out_features if len(linears) > 1 else 0
-    return {"x_dim": m.x_dim, "cond_dim": m.cond_dim, "width": width, "depth": len(linears)}
-
-
-_BUILDERS: dict[str, Callable[[dict], nn.Module]] = {
-    "amdm": lambda c: MLPDenoiser(DenoiserConfig(**c)),
-    "mse": lambda c: MLPRegressor(**c),
-    "mvae": lambda c: MVAE(MVAEConfig(**c)),
-}
-_SPECS: list[tuple[type, str, Callable[[nn.Module], dict]]] = [
-    (MLPDenoiser, "amdm", lambda m: m.config_dict()),
-    (MLPRegressor, "mse", _regressor_spec),
-    (MVAE, "mvae", lambda m: m.config_dict()),
-]
+_BUILDERS: dict[str, Callable[[dict], nn.Module]] = {}
+_SPECS: list[tuple[type, str, Callable[[nn.Module], dict]]] = []
 
 
 def register_model_kind(
@@ -104,21 +89,9 @@ def model_spec(model: nn.Module) -> dict:
     raise ValueError(f"model must be one of {known} (or registered), got {type(model).__name__}")
 
 
-_LAZY_KINDS = {
-    "ddgan": "minimdm.ddgan",
-    "ddgan_generator": "minimdm.ddgan_nets",
-    "aamdm_motion": "minimdm.aamdm",
-}
-"""Kinds registered by modules that are imported on first use (``import minimdm`` stays light)."""
-
-
 def build_model(spec: dict) -> nn.Module:
     """Rebuild a network from :func:`model_spec`'s output (weights not loaded)."""
     kind = spec.get("kind")
-    if kind not in _BUILDERS and kind in _LAZY_KINDS:
-        import importlib
-
-        importlib.import_module(_LAZY_KINDS[kind])  # registers the kind
     if kind not in _BUILDERS:
         raise ValueError(f"model kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
     return _BUILDERS[kind](dict(spec["config"]))
@@ -268,7 +241,7 @@ def save_checkpoint(
     """
     paths = checkpoint_paths(path)
     meta = _jsonable(dict(metadata or {}))
-    meta.update(format=FORMAT, minimdm_version=minimdm.__version__, model=model_spec(model))
+    meta.update(format=FORMAT, minimdm_version=__version__, model=model_spec(model))
     text = _dumps(meta)
     if optimizer_state is not None:
         tensors: dict[str, Tensor] = {}
@@ -310,7 +283,7 @@ class Checkpoint:
 
     @property
     def config(self) -> dict:
-        """The training config as a dict (``minimdm.train.TrainConfig(**ckpt.config)``)."""
+        """The training config as a dict (``minimdm.amdm.train.TrainConfig(**ckpt.config)``)."""
         return dict(self.metadata.get("config") or {})
 
     @property

@@ -45,7 +45,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     import dataclasses
     import shlex
 
-    from minimdm.train import TrainConfig, load_config, train_amdm
+    from minimdm.amdm.train import TrainConfig, load_config, train_amdm
 
     config = load_config(args.config)
     changes = _overrides(args.set or [])
@@ -94,9 +94,11 @@ def _parse_start(text: str) -> tuple[str, int]:
 
 
 def _cmd_sample(args: argparse.Namespace) -> int:
-    from minimdm import data, evaluation, features, viz
+    from minimdm import viz
+    from minimdm.amdm import evaluation
+    from minimdm.amdm.sampling import rollout
     from minimdm.checkpoint import load_checkpoint
-    from minimdm.sampling import rollout
+    from minimdm.motion import bvh, features
 
     out = Path(args.out)
     if out.suffix.lower() not in (".npz", ".bvh", ".gif", ".mp4"):
@@ -138,7 +140,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
             clip = features.decode_clip(
                 torch.as_tensor(feats[k]), sp, skeleton, fps=ckpt.config.get("fps", 30.0)
             )
-            data.save_bvh(path, clip)
+            bvh.save_bvh(path, clip)
     else:
         labels = [f"sample {k}" for k in range(args.samples)]
         viz.animate(list(pos), skeleton, labels=labels, colors=viz.GENERATED, out=out)
@@ -147,7 +149,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from minimdm import evaluation
+    from minimdm.amdm import evaluation
     from minimdm.checkpoint import load_checkpoint
 
     ckpt = load_checkpoint(args.checkpoint, device=args.device)

@@ -1,4 +1,4 @@
-"""Tests for minimdm.aamdm and minimdm.aamdm_eval: the engineered features x, forward kinematics,
+"""Tests for minimdm.aamdm and minimdm.aamdm.eval: the engineered features x, forward kinematics,
 the autoencoder and its round trip, latent sizes, rollouts, guidance and the pose metrics."""
 
 from __future__ import annotations
@@ -12,16 +12,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from minimdm.aamdm import AAMDMMotion, MotionModelConfig, fk_positions, trajectory_features
-from minimdm.aamdm_eval import (
+from minimdm.aamdm.eval import (
     direction_guide,
     pose_diversity,
     pose_frechet_distance,
     rollout_aamdm,
 )
-from minimdm.aamdm_train import AAMDMTrainConfig, load_train_config
-from minimdm.ddgan import AAMDMConfig
-from minimdm.sampling import NonFiniteFrameError
+from minimdm.aamdm.model import AAMDMConfig
+from minimdm.aamdm.motion import AAMDMMotion, MotionModelConfig, fk_positions, trajectory_features
+from minimdm.aamdm.motion_train import AAMDMTrainConfig, load_train_config
+from minimdm.amdm.sampling import NonFiniteFrameError
 
 ROOT = Path(__file__).resolve().parents[1]
 BOOK = ROOT / "checkpoints" / "aamdm_book"
@@ -82,7 +82,7 @@ def test_trajectory_features_do_not_depend_on_where_the_character_stands(yaw, tx
 
 def test_fk_positions_reproduce_the_joint_positions_of_real_frames():
     pytest.importorskip("pybullet_data")
-    from minimdm import data, features
+    from minimdm.motion import data, features
 
     clip = data.load_clips(fps=30, names=["walk", "cartwheel"])
     for c in clip:
@@ -195,7 +195,7 @@ def test_shipped_autoencoder_round_trip_is_within_the_measured_bound():
     within 2 cm on average (measured 1.33 cm for the shipped model) and the forward kinematics
     of the decoded rotations within 1 cm (measured 0.33 cm)."""
     pytest.importorskip("pybullet_data")
-    from minimdm.aamdm_train import load_motion_data
+    from minimdm.aamdm.motion_train import load_motion_data
     from minimdm.checkpoint import load_checkpoint
 
     ck = load_checkpoint(BOOK)

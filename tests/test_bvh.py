@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from minimdm.data import BVHError, load_bvh, load_clips, save_bvh
+from minimdm.motion.bvh import BVHError, load_bvh, save_bvh
+from minimdm.motion.data import load_clips
 
 TINY = """HIERARCHY
 ROOT Hips

@@ -8,9 +8,10 @@ import torch
 import yaml
 
 import minimdm
-from minimdm import data, evaluation, features
+from minimdm.amdm import evaluation
 from minimdm.checkpoint import load_checkpoint
 from minimdm.cli import main
+from minimdm.motion import bvh, features
 
 pytest.importorskip("pybullet_data")
 
@@ -70,10 +71,10 @@ def test_sample_writes_npz_bvh_and_gif(trained, tmp_path):
     arr = np.load(npz)
     assert arr["positions"].shape == (20, 15, 3)
     assert np.isfinite(arr["positions"]).all()
-    bvh = tmp_path / "m.bvh"
-    assert main(["sample", "--checkpoint", str(out), "--frames", "12", "--out", str(bvh),
+    bvh_path = tmp_path / "m.bvh"
+    assert main(["sample", "--checkpoint", str(out), "--frames", "12", "--out", str(bvh_path),
                  "--quiet"]) == 0  # fmt: skip
-    clip = data.load_bvh(bvh, fps=None)
+    clip = bvh.load_bvh(bvh_path, fps=None)
     assert clip.n_frames == 12 and len(clip.skeleton) == 15
     gif = tmp_path / "m.gif"
     assert main(["sample", "--checkpoint", str(out), "--frames", "6", "--out", str(gif),

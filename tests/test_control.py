@@ -12,12 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from minimdm import control as C
+from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, ddpm_sample, q_sample
-from minimdm.features import FeatureLayout, Normalizer, decode_root
-from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.sampling import rollout
-from minimdm.skeleton import Skeleton
+from minimdm.motion.features import FeatureLayout, Normalizer, decode_root
+from minimdm.motion.skeleton import Skeleton
 
 J = 2
 D = 3 + 12 * J  # the A-MDM frame of a 2-joint skeleton
@@ -210,7 +210,7 @@ def test_path_helpers_and_joint_constraints():
     assert both.mask.sum() == 90 * 6 and both.start_pose is not None
     world = torch.cat([circle[1:], torch.full((90, 1), 1.5)], 1)  # the head right above the root
     con = C.joint_path_targets(LAYOUT, "head", world, root)
-    from minimdm.features import decode
+    from minimdm.motion.features import decode
 
     pos = decode(con.targets.double(), con.start_pose)  # only root and head are specified
     assert torch.allclose(pos[:, 1].float(), world, atol=1e-4)
@@ -345,7 +345,7 @@ def test_bad_input_raises_with_the_expected_values(tmp_path):
 
 
 def test_keyframe_from_another_skeleton_raises():
-    from minimdm.data import Clip
+    from minimdm.motion.data import Clip
 
     sk = Skeleton(["pelvis", "head"], [-1, 0], [[0, 0, 0], [0, 0, 0.5]])
     quats = torch.zeros(3, 2, 4)
@@ -368,8 +368,8 @@ def walker(tmp_path_factory):
     It predicts eps: at this size the x0-predicting model continues each clip almost
     deterministically, leaving a pool of candidates nothing to choose from.
     """
-    from minimdm import data, features
-    from minimdm.train import TrainConfig, train_amdm
+    from minimdm.amdm.train import TrainConfig, train_amdm
+    from minimdm.motion import data, features
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)

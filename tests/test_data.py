@@ -9,8 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from minimdm.data import CLIP_NAMES, Clip, MotionDataset, load_clips, load_deepmimic, resample_clip
-from minimdm.skeleton import heading_angle, humanoid_skeleton, pybullet_data_path
+from minimdm.motion.data import (
+    CLIP_NAMES,
+    Clip,
+    MotionDataset,
+    load_clips,
+    load_deepmimic,
+    resample_clip,
+)
+from minimdm.motion.skeleton import heading_angle, humanoid_skeleton, pybullet_data_path
 
 MOTIONS = pybullet_data_path() / "data" / "motions"
 

@@ -1,4 +1,5 @@
-"""Tests for minimdm.ddgan and minimdm.ddgan_train: schedules, the two ways of drawing x_{t-1},
+"""Tests for minimdm.aamdm.model and minimdm.aamdm.train: schedules, the two ways of drawing
+x_{t-1},
 the combined sampler's step accounting, guidance, bad input, and short adversarial runs.
 
 Closed forms are derived here from the forward process alone (Gaussian algebra), not from the
@@ -12,8 +13,7 @@ import math
 import pytest
 import torch
 
-from minimdm.checkpoint import load_checkpoint, save_checkpoint
-from minimdm.ddgan import (
+from minimdm.aamdm.model import (
     AAMDM,
     PAPER_BETAS,
     AAMDMConfig,
@@ -29,7 +29,7 @@ from minimdm.ddgan import (
     q_posterior_sample,
     q_sample_pairs,
 )
-from minimdm.ddgan_train import (
+from minimdm.aamdm.train import (
     GANConfig,
     GANDivergedError,
     PolishConfig,
@@ -37,9 +37,10 @@ from minimdm.ddgan_train import (
     train_ddgan,
     train_polisher,
 )
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
+from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import q_sample
-from minimdm.models import DenoiserConfig, MLPDenoiser
-from minimdm.toy import Squ9, squ9_metrics
+from minimdm.toy.squ9 import Squ9, squ9_metrics
 
 
 @pytest.fixture(autouse=True)

@@ -14,6 +14,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.diffusion import (
     NoiseSchedule,
     ddim_sample,
@@ -26,8 +27,7 @@ from minimdm.diffusion import (
     q_posterior,
     q_sample,
 )
-from minimdm.models import DenoiserConfig, MLPDenoiser
-from minimdm.toy import Squ9, squ9_metrics, train_denoiser
+from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser
 
 KINDS = ["linear", "cosine"]
 TS = [1, 2, 5, 40, 1000]

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from minimdm.data import Clip, load_clips
-from minimdm.features import (
+from minimdm.motion.data import Clip, load_clips
+from minimdm.motion.features import (
     FeatureLayout,
     Normalizer,
     StartPose,
@@ -18,7 +18,7 @@ from minimdm.features import (
     encode,
     start_pose_of,
 )
-from minimdm.skeleton import Skeleton, quat_mul, yaw_matrix
+from minimdm.motion.skeleton import Skeleton, quat_mul, yaw_matrix
 
 
 @pytest.fixture(scope="module")

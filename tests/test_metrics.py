@@ -8,7 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from minimdm import metrics
+from minimdm.motion import metrics
 
 # A 3-joint chain: root (0) -> knee (1) -> ankle (2); the ankle is the foot joint.
 PARENTS = [-1, 0, 1]

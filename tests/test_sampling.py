@@ -3,10 +3,10 @@
 import pytest
 import torch
 
+from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.amdm.sampling import NonFiniteFrameError, rollout
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
-from minimdm.features import Normalizer, StartPose, decode
-from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.sampling import NonFiniteFrameError, rollout
+from minimdm.motion.features import Normalizer, StartPose, decode
 
 J = 2
 D = 3 + 12 * J  # the A-MDM frame of a 2-joint skeleton

@@ -8,7 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from minimdm.skeleton import (
+from minimdm.motion.skeleton import (
     Skeleton,
     axis_angle_to_matrix,
     axis_angle_to_quat,

@@ -1,4 +1,4 @@
-"""Tests for minimdm.toy: the Squ-9 rule, its metrics, plots and trainers."""
+"""Tests for minimdm.toy.squ9: the Squ-9 rule, its metrics, plots and trainers."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.diffusion import NoiseSchedule
-from minimdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
-from minimdm.toy import (
+from minimdm.toy.squ9 import (
     Squ9,
     plot_transition_matrix,
     plot_transitions,

@@ -8,17 +8,8 @@ import torch
 from torch import nn
 
 from minimdm import checkpoint as ckpt_mod
-from minimdm.checkpoint import (
-    CheckpointMismatchError,
-    load_checkpoint,
-    load_train_state,
-    save_checkpoint,
-)
-from minimdm.diffusion import NoiseSchedule, predict_x0_from_eps
-from minimdm.features import FeatureLayout
-from minimdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
-from minimdm.skeleton import Skeleton
-from minimdm.train import (
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
+from minimdm.amdm.train import (
     TrainConfig,
     build_network,
     load_config,
@@ -27,6 +18,15 @@ from minimdm.train import (
     train_amdm,
     window_loss,
 )
+from minimdm.checkpoint import (
+    CheckpointMismatchError,
+    load_checkpoint,
+    load_train_state,
+    save_checkpoint,
+)
+from minimdm.diffusion import NoiseSchedule, predict_x0_from_eps
+from minimdm.motion.features import FeatureLayout
+from minimdm.motion.skeleton import Skeleton
 
 ROOT = Path(__file__).resolve().parents[1]
 D = 8

@@ -1,7 +1,7 @@
 """Control without retraining (A-MDM §4.2-4.3): task-oriented sampling, inpainting, inbetweening.
 
 Each technique drives the one sampler of :mod:`minimdm.diffusion` frame after frame, through
-:func:`minimdm.sampling.next_frame`; none copies the denoising loop:
+:func:`minimdm.amdm.sampling.next_frame`; none copies the denoising loop:
 
 * :func:`beam_search` samples a pool of candidate futures per frame and keeps the first frame of
   the best under a score function (:mod:`~minimdm.control.scores`);

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from minimdm.checkpoint import Checkpoint
-from minimdm.features import StartPose, decode, decode_root
+from minimdm.motion.features import StartPose, decode, decode_root
 
 from .core import (
     ControlModel,

@@ -2,8 +2,8 @@
 
 :class:`ControlModel` gathers what sampling a frame needs (network, normalizer, noise schedule,
 ``predicts``, ``clip_x0``), read from a loaded :class:`~minimdm.checkpoint.Checkpoint` the way
-:func:`minimdm.sampling.rollout` reads it. :func:`sample_frame` draws one frame through
-:func:`minimdm.sampling.next_frame`, i.e. through the one sampler loop of
+:func:`minimdm.amdm.sampling.rollout` reads it. :func:`sample_frame` draws one frame through
+:func:`minimdm.amdm.sampling.next_frame`, i.e. through the one sampler loop of
 :mod:`minimdm.diffusion`; the techniques differ only in the hook and the start of the chain they
 hand it. :class:`Motion` is what they return.
 """
@@ -18,12 +18,12 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
+from minimdm.amdm.sampling import NonFiniteFrameError, next_frame
 from minimdm.checkpoint import Checkpoint, load_checkpoint
 from minimdm.diffusion import Hook, NoiseSchedule
-from minimdm.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
-from minimdm.models import MVAE, MLPDenoiser, MLPRegressor
-from minimdm.sampling import NonFiniteFrameError, next_frame
-from minimdm.skeleton import Skeleton
+from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
+from minimdm.motion.skeleton import Skeleton
 
 __all__ = ["ControlModel", "as_control_model", "regressor_noise", "sample_frame", "Motion"]
 
@@ -158,7 +158,7 @@ def regressor_noise(checkpoint: Checkpoint, clips: Any) -> Tensor:
     that the deterministic baseline proposes distinct candidates (A-MDM §7.3.3 compares models
     under the same search).
     """
-    from minimdm.features import encode
+    from minimdm.motion.features import encode
 
     if not isinstance(checkpoint.model, MLPRegressor) or checkpoint.normalizer is None:
         raise ValueError("checkpoint must hold an MLPRegressor and its normalizer")
@@ -182,7 +182,7 @@ def sample_frame(
 ) -> Tensor:
     """One frame :math:`x_f` (B, D) from :math:`x_{f-1}` (B, D), in normalized space.
 
-    Calls :func:`minimdm.sampling.next_frame` (the sampler of :mod:`minimdm.diffusion`) with
+    Calls :func:`minimdm.amdm.sampling.next_frame` (the sampler of :mod:`minimdm.diffusion`) with
     the technique's ``hook`` and chain start; raises :class:`NonFiniteFrameError` naming
     ``frame`` (1-based) if the result holds NaN/Inf.
     """
@@ -246,7 +246,7 @@ class Motion:
     """
 
     features: Tensor
-    """([B,] F, D) frames in feature units (``minimdm.features.encode``)."""
+    """([B,] F, D) frames in feature units (``minimdm.motion.features.encode``)."""
     normalized: Tensor
     """([B,] F, D) the same frames in the model's normalized space."""
     positions: Tensor

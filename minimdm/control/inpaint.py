@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 from minimdm.checkpoint import Checkpoint
 from minimdm.diffusion import q_sample
-from minimdm.features import StartPose
+from minimdm.motion.features import StartPose
 
 from .core import (
     ControlModel,

@@ -1,6 +1,6 @@
 """Targets and masks for inpainting (A-MDM §4.3, Fig. 7), built from paths and trajectories.
 
-The features of frame f live in the heading frame of frame f (:mod:`minimdm.features`), so a
+The features of frame f live in the heading frame of frame f (:mod:`minimdm.motion.features`), so a
 world-space wish must be turned into those features:
 
 * a 2D root path :math:`p_0..p_F` (p_0 the start) gives the root velocity and yaw rate: the
@@ -26,9 +26,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from minimdm.data import Clip
-from minimdm.features import FeatureLayout, StartPose, encode
-from minimdm.skeleton import wrap_angle
+from minimdm.motion.data import Clip
+from minimdm.motion.features import FeatureLayout, StartPose, encode
+from minimdm.motion.skeleton import wrap_angle
 
 __all__ = [
     "Constraint",

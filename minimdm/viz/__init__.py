@@ -3,7 +3,8 @@
 Every function takes *motions* of global joint positions, shape ``(F, J, 3)`` in metres, in
 the z-up world used everywhere in minimdm (the ground is the plane ``z = 0``), as numpy arrays
 or torch tensors, and the skeleton's *parents* (``-1`` for the root): a
-:class:`minimdm.skeleton.Skeleton`, anything with a ``.parents`` attribute (its ``.names``, if
+:class:`minimdm.motion.skeleton.Skeleton`, anything with a ``.parents`` attribute (its ``.names``,
+if
 any, let us draw a head), or a plain list of parent indices. The root's (the first joint with
 parent ``-1``) ground projection is the trail, and the camera follows it.
 

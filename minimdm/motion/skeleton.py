@@ -3,7 +3,7 @@
 World convention (used by every module of minimdm): **z is up**, right-handed, metres. A
 character in its rest pose faces **+x** and has **+y on its left**. Source data in other
 conventions (the y-up DeepMimic humanoid, y-up BVH files) is rotated into this world once, on
-load, by :mod:`minimdm.data`.
+load, by :mod:`minimdm.motion.data`.
 
 Rotations are torch tensors batched over any leading dimensions:
 

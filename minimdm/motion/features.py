@@ -14,7 +14,7 @@ slice          size   meaning
 
 ``D = 3 + 12 J`` (183 for the 15-joint humanoid). Every vector in row f is expressed in the
 **heading frame of frame f**: the z-up world rotated by ``-heading_f`` about z, where the
-heading is the root's yaw (:func:`minimdm.skeleton.heading_angle`). Velocities are per-frame
+heading is the root's yaw (:func:`minimdm.motion.skeleton.heading_angle`). Velocities are per-frame
 differences at the clip's rate (metres and radians per frame; multiply by fps for per second).
 
 Frame 0 of a clip has no predecessor, so ``encode`` gives ``F - 1`` rows: row ``r`` describes
@@ -273,7 +273,7 @@ def decode_clip(
     fps: float = 30.0,
     name: str = "decoded",
 ) -> Clip:
-    """A :class:`Clip` (e.g. for :func:`minimdm.data.save_bvh`) from features ``(N, D)``.
+    """A :class:`Clip` (e.g. for :func:`minimdm.motion.data.save_bvh`) from features ``(N, D)``.
 
     Local rotations come from ``j_o`` and the root position from ``j_p``; the clip's
     positions are then recomputed by forward kinematics with the skeleton's bone lengths.

@@ -1,8 +1,8 @@
 """Sampling the motion AAMDM, guiding its root direction (eq. 13) and comparing it with A-MDM.
 
 :func:`rollout_aamdm` generates frames auto-regressively in the embedded space (one
-:meth:`~minimdm.ddgan.AAMDM.sample` per frame, then the decoder) and returns the same
-:class:`~minimdm.sampling.Rollout` as A-MDM's :func:`~minimdm.sampling.rollout`. With a
+:meth:`~minimdm.aamdm.model.AAMDM.sample` per frame, then the decoder) and returns the same
+:class:`~minimdm.amdm.sampling.Rollout` as A-MDM's :func:`~minimdm.amdm.sampling.rollout`. With a
 ``direction`` it applies the guidance of AAMDM §3.5 (eq. 13): every step's clean estimate is
 pushed down the gradient of the distance between the facing directions in :math:`\\hat x` and
 the commanded one.
@@ -25,12 +25,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from minimdm import metrics
-from minimdm.aamdm import AAMDMMotion
-from minimdm.ddgan import Guide
-from minimdm.features import StartPose, decode, start_pose_of
-from minimdm.sampling import NonFiniteFrameError, Rollout
-from minimdm.skeleton import wrap_angle
+from minimdm.aamdm.model import Guide
+from minimdm.aamdm.motion import AAMDMMotion
+from minimdm.amdm.sampling import NonFiniteFrameError, Rollout
+from minimdm.motion import metrics
+from minimdm.motion.features import StartPose, decode, start_pose_of
+from minimdm.motion.skeleton import wrap_angle
 
 __all__ = [
     "INITIAL_CLIPS",
@@ -211,7 +211,7 @@ def motion_quality(
     """The comparison's quality columns for one rollout (C characters, K >= 2 samples each).
 
     ``APD`` (cm, mean over characters), ``FS`` (cm/frame), ``Bone.Err`` (cm), ``Jnt.Accel``
-    (cm/frame²) from :mod:`minimdm.metrics`; ``DIV`` and ``FD`` against ``data_poses``
+    (cm/frame²) from :mod:`minimdm.motion.metrics`; ``DIV`` and ``FD`` against ``data_poses``
     (:func:`local_poses` of the dataset).
     """
     pos = rollout.positions  # (C, K, F, J, 3)
@@ -259,8 +259,8 @@ def frames_per_second(step: Callable[[], Any], n_frames: int = 60, warmup: int =
 
 def _amdm_stepper(ckpt: Any, steps: int | None, eta: float, device: torch.device):
     """``(next_frame(cond, generator) -> frame, normalize)`` for an A-MDM checkpoint."""
-    from minimdm.features import Normalizer
-    from minimdm.sampling import next_frame
+    from minimdm.amdm.sampling import next_frame
+    from minimdm.motion.features import Normalizer
 
     d = ckpt.metadata.get("diffusion") or {}
     sched = ckpt.schedule(device)
@@ -297,7 +297,7 @@ def motion_comparison(
     pose; the CPU runs one thread for batch 1). ``amdm`` is a loaded A-MDM
     :class:`~minimdm.checkpoint.Checkpoint`. Returns the rows and the rollouts by method name.
     """
-    from minimdm.sampling import rollout
+    from minimdm.amdm.sampling import rollout
 
     dev = torch.device(device)
     sk = data["skeleton"]

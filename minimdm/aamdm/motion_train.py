@@ -21,16 +21,16 @@ import torch
 import yaml
 from torch import Tensor, nn
 
-from minimdm.aamdm import (
+from minimdm.aamdm.model import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
+from minimdm.aamdm.motion import (
     X_DIM,
     AAMDMMotion,
     MotionModelConfig,
     autoencoder_loss,
     clip_trajectory_features,
 )
+from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
-from minimdm.ddgan import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
-from minimdm.ddgan_train import GANConfig, PolishConfig, train_ddgan, train_polisher
 
 __all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
 
@@ -124,7 +124,7 @@ def load_train_config(path: str | Path) -> AAMDMTrainConfig:
 
 def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
     """Clips, per-clip features ``y`` (F_i - 1, D) and ``x`` (F_i - 1, 12), and the normalizer."""
-    from minimdm import data, features
+    from minimdm.motion import data, features
 
     clips = data.load_clips(fps=config.fps, loop_frames=config.loop_frames, names=config.clips)
     ys = [features.encode(c) for c in clips]
@@ -152,7 +152,7 @@ def train_aamdm_motion(
     ``model.train.safetensors``) when ``out_dir`` is given. Returns the model and a report of
     the training times and final losses.
     """
-    from minimdm.train import make_windows
+    from minimdm.amdm.train import make_windows
 
     c = config
     log = print if progress else (lambda *a, **k: None)

@@ -23,10 +23,10 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.checkpoint import Checkpoint, load_checkpoint
 from minimdm.diffusion import Hook, NoiseSchedule, ddim_sample, ddpm_sample
-from minimdm.features import Normalizer, StartPose, decode
-from minimdm.models import MVAE, MLPDenoiser, MLPRegressor
+from minimdm.motion.features import Normalizer, StartPose, decode
 
 __all__ = ["NonFiniteFrameError", "Rollout", "rollout", "next_frame"]
 
@@ -97,7 +97,7 @@ def next_frame(
 ) -> Tensor:
     """One auto-regressive step in normalized space: :math:`x_f` (B, D) from :math:`x_{f-1}`.
 
-    For an :class:`~minimdm.models.MLPDenoiser` this runs the reverse chain: DDPM over all T
+    For an :class:`~minimdm.amdm.models.MLPDenoiser` this runs the reverse chain: DDPM over all T
     steps when ``steps`` is None or T, else DDIM over ``steps`` of them with ``eta``
     (1: as stochastic as DDPM, 0: deterministic given the start noise). ``hook`` is passed to
     the sampler (inpainting, guidance...). ``t_start`` and ``x_start`` start the DDPM chain at

@@ -2,7 +2,7 @@
 
 :class:`Squ9Study` trains every model of the comparison on the same Squ-9 data with fixed seeds,
 samples one transition per evaluation condition, and measures each with
-:func:`~minimdm.toy.squ9_metrics` and a clock:
+:func:`~minimdm.toy.squ9.squ9_metrics` and a clock:
 
 =============  ==============================================================  =============
 method         model                                                           network calls
@@ -21,7 +21,7 @@ method         model                                                           n
 network calls of the chain; ``speedup_vs_ddpm200`` is DDPM-200's time for that batch over the
 method's, measured in the same run. :meth:`Squ9Study.ablation` retrains what each
 (T_GAN, T_ADM) setting needs: one generator per T_GAN (the polisher of the main run serves
-every T_GAN, since the polishing levels of :func:`~minimdm.ddgan.aamdm_betas` do not depend on
+every T_GAN, since the polishing levels of :func:`~minimdm.aamdm.model.aamdm_betas` do not depend on
 it) and one polisher per T_ADM (the main run's generator serves every T_ADM, its hand-over level
 being fixed).
 """
@@ -35,8 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from minimdm.checkpoint import load_checkpoint, save_checkpoint
-from minimdm.ddgan import (
+from minimdm.aamdm.model import (
     AAMDM,
     AAMDMConfig,
     DDGANDiscriminator,
@@ -44,16 +43,17 @@ from minimdm.ddgan import (
     StepCount,
     aamdm_schedule,
 )
-from minimdm.ddgan_train import (
+from minimdm.aamdm.train import (
     GANConfig,
     PolishConfig,
     pairs_to_windows,
     train_ddgan,
     train_polisher,
 )
+from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
-from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.toy import Squ9, squ9_metrics, train_denoiser, train_regressor
+from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser, train_regressor
 
 __all__ = ["METHODS", "PANELS", "LABELS", "Squ9StudyConfig", "Squ9Study", "with_budget"]
 
@@ -184,7 +184,7 @@ class Squ9Study:
         self.models["mse"] = model.eval()
 
     def _train_mvae(self) -> None:
-        from minimdm.train import frame_loss
+        from minimdm.amdm.train import frame_loss
 
         c = self.config
         self._net_seed()

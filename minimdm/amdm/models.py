@@ -21,6 +21,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor, nn
 
+from minimdm.checkpoint import register_model_kind
+
 __all__ = [
     "DenoiserConfig",
     "MLPDenoiser",
@@ -219,3 +221,16 @@ class MVAE(nn.Module):
 
     def config_dict(self) -> dict:
         return asdict(self.config)
+
+
+def _regressor_spec(m: MLPRegressor) -> dict:
+    linears = [layer for layer in m.net if isinstance(layer, nn.Linear)]
+    width = linears[0].out_features if len(linears) > 1 else 0
+    return {"x_dim": m.x_dim, "cond_dim": m.cond_dim, "width": width, "depth": len(linears)}
+
+
+register_model_kind(
+    "amdm", MLPDenoiser, lambda c: MLPDenoiser(DenoiserConfig(**c)), lambda m: m.config_dict()
+)
+register_model_kind("mse", MLPRegressor, lambda c: MLPRegressor(**c), _regressor_spec)
+register_model_kind("mvae", MVAE, lambda c: MVAE(MVAEConfig(**c)), lambda m: m.config_dict())

@@ -1,10 +1,12 @@
 """BVH motion files, both ways: :func:`load_bvh` (a file or a folder) and :func:`save_bvh`.
 
 BVH files are y-up and, by convention, the rest pose faces +Z with +X on its left. They are
-mapped into the z-up world of minimdm (x forward, y left, see :mod:`minimdm.skeleton`) by the
+mapped into the z-up world of minimdm (x forward, y left, see :mod:`minimdm.motion.skeleton`) by the
 cyclic permutation ``(X, Y, Z) -> (Z, X, Y)`` (:data:`BVH_TO_WORLD`); :func:`save_bvh` applies
-the inverse, so a saved clip faces +Z in the file. Clips come back as :class:`minimdm.data.Clip`
-(resampled to 30 Hz by default); :mod:`minimdm.data` re-exports ``BVHError``, ``load_bvh`` and
+the inverse, so a saved clip faces +Z in the file. Clips come back as
+:class:`minimdm.motion.data.Clip`
+(resampled to 30 Hz by default); :mod:`minimdm.motion.data` re-exports ``BVHError``, ``load_bvh``
+and
 ``save_bvh``.
 """
 

@@ -21,7 +21,7 @@ Levels use the library's 0-based index (:mod:`minimdm.diffusion`): ``t = T-1`` i
 The sampler :func:`aamdm_sample` is one loop over the ``T`` levels; it counts its network calls
 (:class:`StepCount`), calls the library's per-step ``hook(t, x_t, x0_hat)`` after every step, and
 applies the guidance of eq. 13 when given a ``guide``. Training lives in
-:mod:`minimdm.ddgan_train`.
+:mod:`minimdm.aamdm.train`.
 """
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 from torch import Tensor, nn
 
-from minimdm.checkpoint import register_model_kind
-from minimdm.ddgan_nets import (
+from minimdm.aamdm.nets import (
     DDGANDiscriminator,
     DDGANGenerator,
     DiscriminatorConfig,
@@ -42,8 +41,9 @@ from minimdm.ddgan_nets import (
     GeneratorConfig,
     _check_shape,
 )
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
+from minimdm.checkpoint import register_model_kind
 from minimdm.diffusion import Hook, NoiseSchedule, check_finite, q_posterior, q_sample
-from minimdm.models import DenoiserConfig, MLPDenoiser
 
 __all__ = [
     "PAPER_BETAS",
@@ -228,7 +228,7 @@ class AAMDMConfig:
 class AAMDM(nn.Module):
     """Generator + polisher + their schedule: one module, one checkpoint (kind ``"ddgan"``).
 
-    ``polisher`` is an :class:`~minimdm.models.MLPDenoiser` predicting x0 (eq. 6); it is
+    ``polisher`` is an :class:`~minimdm.amdm.models.MLPDenoiser` predicting x0 (eq. 6); it is
     ``None`` when ``T_adm = 0``. Sample with :meth:`sample` (see :func:`aamdm_sample`).
     """
 

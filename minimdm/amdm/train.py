@@ -2,11 +2,11 @@
 
 One trainer serves three models, chosen by :attr:`TrainConfig.model_kind`:
 
-* ``"amdm"`` — the A-MDM denoiser (:class:`~minimdm.models.MLPDenoiser`) trained with the DDPM
+* ``"amdm"`` — the A-MDM denoiser (:class:`~minimdm.amdm.models.MLPDenoiser`) trained with the DDPM
   loss of eq. 3 (:func:`~minimdm.diffusion.diffusion_loss`);
-* ``"mse"`` — the deterministic next-frame regressor (:class:`~minimdm.models.MLPRegressor`),
+* ``"mse"`` — the deterministic next-frame regressor (:class:`~minimdm.amdm.models.MLPRegressor`),
   trained with MSE;
-* ``"mvae"`` — the MVAE-style conditional VAE (:class:`~minimdm.models.MVAE`), trained with
+* ``"mvae"`` — the MVAE-style conditional VAE (:class:`~minimdm.amdm.models.MVAE`), trained with
   reconstruction + β-KL.
 
 All three see the same data and the same protocol. A batch is ``B`` windows of ``N_r + 1``
@@ -43,6 +43,7 @@ import yaml
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
 from minimdm.checkpoint import (
     Checkpoint,
     checkpoint_paths,
@@ -51,7 +52,6 @@ from minimdm.checkpoint import (
     save_checkpoint,
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
-from minimdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
 
 __all__ = [
     "TrainConfig",
@@ -311,10 +311,10 @@ def window_loss(
 def make_windows(features: Sequence[Tensor | np.ndarray], n: int) -> Tensor:
     """Every window of ``n + 1`` consecutive frames of every clip, stacked: (W, n + 1, D).
 
-    Windows never cross clips (:class:`~minimdm.features.WindowDataset`); clips shorter than
+    Windows never cross clips (:class:`~minimdm.motion.features.WindowDataset`); clips shorter than
     ``n + 1`` frames contribute none.
     """
-    from minimdm.features import WindowDataset
+    from minimdm.motion.features import WindowDataset
 
     for i, a in enumerate(features):
         a = torch.as_tensor(a)
@@ -357,7 +357,7 @@ def _ema_update(ema: nn.Module, model: nn.Module, decay: float, step: int) -> No
 
 def _load_data(config: TrainConfig) -> dict[str, Any]:
     """Load the clips, encode them (A-MDM §3.1) and fit the normalizer: the real-data path."""
-    from minimdm import data, features
+    from minimdm.motion import data, features
 
     clips = data.load_clips(fps=config.fps, loop_frames=config.loop_frames, names=config.clips)
     arrays = [features.encode(c) for c in clips]  # [(F_i - 1, D)]

@@ -29,8 +29,13 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from minimdm.aamdm.model import (
+    DDGANDiscriminator,
+    DDGANGenerator,
+    q_posterior_sample,
+    q_sample_pairs,
+)
 from minimdm.checkpoint import checkpoint_paths, load_train_state, save_checkpoint
-from minimdm.ddgan import DDGANDiscriminator, DDGANGenerator, q_posterior_sample, q_sample_pairs
 from minimdm.diffusion import NoiseSchedule, q_sample
 
 __all__ = [

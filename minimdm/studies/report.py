@@ -1,7 +1,9 @@
 """Tables and figures of the acceleration chapter: fixed-width tables, the Squ-9 panels.
 
-:func:`format_table` prints the rows of :meth:`minimdm.ddgan_squ9.Squ9Study.evaluate`,
-:meth:`~minimdm.ddgan_squ9.Squ9Study.ablation` or :func:`minimdm.aamdm_eval.motion_comparison`;
+:func:`format_table` prints the rows of
+:meth:`minimdm.studies.squ9_acceleration.Squ9Study.evaluate`,
+:meth:`~minimdm.studies.squ9_acceleration.Squ9Study.ablation` or
+:func:`minimdm.aamdm.eval.motion_comparison`;
 :func:`plot_panels` draws AAMDM Figure 3 (one transition plot per method).
 """
 
@@ -10,8 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from minimdm.ddgan_squ9 import LABELS, PANELS
-from minimdm.toy import Squ9, plot_transitions
+from minimdm.studies.squ9_acceleration import LABELS, PANELS
+from minimdm.toy.squ9 import Squ9, plot_transitions
 
 __all__ = ["format_table", "plot_panels"]
 

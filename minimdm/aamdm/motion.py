@@ -1,6 +1,7 @@
 """AAMDM on motion (Qiao et al. 2024, §3.1, §3.4-3.6): an embedded space, DD-GAN + polishing in it.
 
-A pose is the A-MDM frame ``y`` (:mod:`minimdm.features`, 183 numbers for the humanoid). AAMDM
+A pose is the A-MDM frame ``y`` (:mod:`minimdm.motion.features`, 183 numbers for the humanoid).
+AAMDM
 replaces it by a compact embedded vector ``xz`` (§3.1):
 
 * ``x`` (12): engineered **future-trajectory features** (§3.6), the root's ground position and
@@ -13,12 +14,14 @@ replaces it by a compact embedded vector ``xz`` (§3.1):
   (:math:`L_{val}`), FK velocity errors over two consecutive frames (:math:`L_{vel}`), and
   :math:`\\|z\\|^2` (:math:`L_{reg}`).
 
-The transition :math:`xz_{n-1} \\to xz_n` is an :class:`~minimdm.ddgan.AAMDM` (3 DD-GAN steps and
+The transition :math:`xz_{n-1} \\to xz_n` is an :class:`~minimdm.aamdm.model.AAMDM` (3 DD-GAN steps
+and
 2 polishing steps) over the standardised ``xz``; a frame is sampled in the latent space and
 decoded to a pose. :class:`AAMDMMotion` holds the three networks and every normalisation, and is
 one checkpoint (kind ``"aamdm_motion"``). Training is :func:`train_aamdm_motion`; its command
-line is ``python -m minimdm.aamdm train configs/aamdm_book.yaml``. Rollouts, guidance (eq. 13)
-and the evaluation live in :mod:`minimdm.aamdm_eval`.
+line is ``python -m minimdm.aamdm train configs/aamdm_book.yaml``
+(:mod:`minimdm.aamdm.motion_train`). Rollouts, guidance (eq. 13)
+and the evaluation live in :mod:`minimdm.aamdm.eval`.
 """
 
 from __future__ import annotations
@@ -29,9 +32,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from minimdm.aamdm.model import AAMDM, AAMDMConfig
 from minimdm.checkpoint import register_model_kind
-from minimdm.ddgan import AAMDM, AAMDMConfig
-from minimdm.skeleton import Skeleton, heading_angle, sixd_to_matrix, wrap_angle
+from minimdm.motion.skeleton import Skeleton, heading_angle, sixd_to_matrix, wrap_angle
 
 __all__ = [
     "trajectory_features",
@@ -258,14 +261,3 @@ register_model_kind(
     lambda c: AAMDMMotion(MotionModelConfig(**c)),
     lambda m: m.config_dict(),
 )
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m minimdm.aamdm train CONFIG [--out DIR]`` (see :mod:`minimdm.aamdm_train`)."""
-    from minimdm.aamdm_train import main as train_main
-
-    train_main(argv)
-
-
-if __name__ == "__main__":
-    main()

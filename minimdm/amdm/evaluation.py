@@ -30,12 +30,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from minimdm import metrics
+from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import Checkpoint
-from minimdm.data import MotionDataset, load_clips
-from minimdm.features import StartPose, encode, start_pose_of
-from minimdm.sampling import rollout
-from minimdm.skeleton import Skeleton
+from minimdm.motion import metrics
+from minimdm.motion.data import MotionDataset, load_clips
+from minimdm.motion.features import StartPose, encode, start_pose_of
+from minimdm.motion.skeleton import Skeleton
 
 __all__ = [
     "Protocol",

@@ -2,8 +2,8 @@
 
 :class:`DDGANGenerator` is :math:`G^{GAN}(x^t, x_{n-1}, r, t) \\to \\hat x^0` (AAMDM eq. 10) and
 :class:`DDGANDiscriminator` is :math:`D^{GAN}(x^{t-1}, x^t, x_{n-1}, t)` (eq. 12), both MLPs, with
-optional random Fourier features of their inputs. :mod:`minimdm.ddgan` assembles them with the
-polisher into the AAMDM sampler; :mod:`minimdm.ddgan_train` trains them.
+optional random Fourier features of their inputs. :mod:`minimdm.aamdm.model` assembles them with the
+polisher into the AAMDM sampler; :mod:`minimdm.aamdm.train` trains them.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor, nn
 
+from minimdm.amdm.models import timestep_embedding
 from minimdm.checkpoint import register_model_kind
-from minimdm.models import timestep_embedding
 
 __all__ = [
     "FourierFeatures",

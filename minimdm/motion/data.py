@@ -1,14 +1,13 @@
 """Motion clips: the DeepMimic humanoid clips of ``pybullet_data``, resampling, BVH both ways.
 
-Axis convention (the one world of minimdm, see :mod:`minimdm.skeleton`): **z up**,
+Axis convention (the one world of minimdm, see :mod:`minimdm.motion.skeleton`): **z up**,
 right-handed, metres; a character in its rest pose faces **+x** with **+y on its left**.
 
 * DeepMimic clips and the humanoid URDF are y-up with x forward and z to the character's right.
   They are rotated by +90 degrees about x: ``(x, y, z) -> (x, -z, y)``.
 * BVH files are y-up and, by convention, the rest pose faces +Z with +X on its left. They are
   mapped by the cyclic permutation ``(X, Y, Z) -> (Z, X, Y)``; :func:`save_bvh` applies the
-  inverse, so a saved clip faces +Z in the file. The BVH code lives in :mod:`minimdm.bvh`;
-  ``load_bvh``, ``save_bvh`` and ``BVHError`` are re-exported here.
+  inverse, so a saved clip faces +Z in the file. The BVH code lives in :mod:`minimdm.motion.bvh`.
 
 A :class:`Clip` stores the root position ``(F, 3)`` and **local joint rotations as unit
 quaternions** ``(F, J, 4)``, w-first, relative to the parent joint (the root's is global).
@@ -27,7 +26,6 @@ import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -52,12 +50,9 @@ from .skeleton import (
 __all__ = [
     "Clip",
     "MotionDataset",
-    "BVHError",
     "load_clips",
     "load_deepmimic",
     "resample_clip",
-    "load_bvh",
-    "save_bvh",
     "CLIP_NAMES",
 ]
 
@@ -447,20 +442,3 @@ def load_clips(
             file = folder / (f"{n}.txt" if n.startswith("walker/") else f"humanoid3d_{n}.txt")
             clips.append(load_deepmimic(file, fps, loop_frames, name=n, skeleton=skeleton))
     return MotionDataset(clips)
-
-
-# --------------------------------------------------------------------------- BVH
-# minimdm.bvh imports Clip and MotionDataset from here, so its names are re-exported lazily
-# (PEP 562). An eager import would be a cycle: at the top of this module it breaks
-# `import minimdm.data`, at the bottom it breaks `import minimdm.bvh` done first.
-
-if TYPE_CHECKING:
-    from .bvh import BVHError, load_bvh, save_bvh
-
-
-def __getattr__(name: str):
-    if name in ("BVHError", "load_bvh", "save_bvh", "BVH_TO_WORLD"):
-        from . import bvh
-
-        return getattr(bvh, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
