@@ -7,15 +7,21 @@ A-MDM (DDPM over all T steps, or DDIM over fewer), by the prior of the MVAE-styl
 by the deterministic regressor. Frames are normalized before they enter the model and
 denormalized after; decoded global joint positions come with them.
 
-A rollout never returns NaN: a non-finite frame raises :class:`NonFiniteFrameError` naming the
-frame and the first character and sample it appeared in.
+:func:`autoregress` is the one frame-after-frame loop of the library: random rollouts, beam
+search (:mod:`minimdm.control.beam`), inpainting and inbetweening (:mod:`minimdm.control.inpaint`),
+AAMDM rollouts (:mod:`minimdm.aamdm.eval`) and the Squ-9 chains of the studies all run on it and
+differ only in the per-frame step they hand it. It never returns NaN: a non-finite frame raises
+:class:`NonFiniteFrameError` naming the frame and the first bad batch row (which the caller
+names as a character and sample).
+
+:func:`sampler_settings` is the one reader of a checkpoint's sampler settings (normalizer,
+schedule, ``predicts``, ``clip_x0``, layout, skeleton).
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,13 +32,34 @@ from tqdm.auto import tqdm
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.checkpoint import Checkpoint, load_checkpoint
 from minimdm.diffusion import Hook, NoiseSchedule, ddim_sample, ddpm_sample
-from minimdm.motion.features import Normalizer, StartPose, decode
+from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode
+from minimdm.motion.skeleton import Skeleton
+from minimdm.utils import num_threads
 
-__all__ = ["NonFiniteFrameError", "Rollout", "rollout", "next_frame"]
+__all__ = [
+    "NonFiniteFrameError",
+    "Rollout",
+    "FrameStep",
+    "check_finite",
+    "autoregress",
+    "SamplerSettings",
+    "sampler_settings",
+    "rollout",
+    "next_frame",
+]
 
 
 class NonFiniteFrameError(FloatingPointError):
-    """A rollout produced a frame holding NaN or Inf."""
+    """A rollout produced a frame holding NaN or Inf.
+
+    ``frame`` is the frame (1-based: frame 0 is the initial state) and ``row`` the first batch
+    row that held NaN/Inf (None when raised without them).
+    """
+
+    def __init__(self, message: str, frame: int | None = None, row: int | None = None) -> None:
+        super().__init__(message)
+        self.frame = frame
+        self.row = row
 
 
 @dataclass
@@ -49,18 +76,6 @@ class Rollout:
     @property
     def n_frames(self) -> int:
         return self.features.shape[2]
-
-
-@contextlib.contextmanager
-def _threads(n: int | None) -> Iterator[None]:
-    """Run torch with ``n`` CPU threads inside the block (None: leave as is)."""
-    old = torch.get_num_threads()
-    if n is not None:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 SMALL_BATCH = 256
@@ -146,37 +161,127 @@ def next_frame(
     raise ValueError(f"cannot sample from a {type(model).__name__}")
 
 
-def _sample_frames(
-    model: nn.Module,
+FrameStep = Callable[[int, Tensor], Tensor]
+"""``step(f, x_prev) -> x_f``: frame ``f`` (1-based) of a batch (B, ...) from frame ``f - 1``."""
+
+
+def check_finite(
+    x: Tensor, frame: int, who: Callable[[int], str] | None = None, what: str = "rollout"
+) -> Tensor:
+    """Return ``x`` (B, ...), or raise :class:`NonFiniteFrameError` if a row holds NaN/Inf.
+
+    The message names ``frame`` and the first bad row, ``who(row)`` (e.g. "character 1,
+    sample 0"; default "batch row {row}"); ``what`` names the technique.
+    """
+    finite = torch.isfinite(x.reshape(x.shape[0], -1)).all(1)  # (B,)
+    if not finite.all():
+        b = int((~finite).nonzero()[0])
+        name = who(b) if who is not None else f"batch row {b}"
+        raise NonFiniteFrameError(
+            f"{what} produced a non-finite frame {frame} (frame 0 is the initial state) for {name}",
+            frame,
+            b,
+        )
+    return x
+
+
+def autoregress(
+    step: FrameStep,
     x0: Tensor,
     n_frames: int,
-    K: int,
-    normalizer: Normalizer | None,
-    generator: torch.Generator | None,
-    schedule: NoiseSchedule | None,
-    steps: int | None,
-    eta: float,
-    predicts: str,
-    clip_x0: float | None,
-    progress: bool,
+    *,
+    first: int = 1,
+    stop: Callable[[int], bool] | None = None,
+    who: Callable[[int], str] | None = None,
+    desc: str = "rollout",
+    progress: bool = False,
 ) -> Tensor:
-    """The auto-regressive loop in normalized space: (C, K, F, D) on the CPU."""
-    C = x0.shape[0]
-    cond = normalizer.normalize(x0) if normalizer is not None else x0
-    cond = cond.repeat_interleave(K, dim=0)  # (C K, D), character-major
-    out = torch.empty(C * K, n_frames, cond.shape[1], dtype=torch.float32)  # (C K, F, D) on CPU
-    for f in tqdm(range(n_frames), disable=not progress, desc="rollout", unit="frame"):
-        x = next_frame(model, cond, generator, schedule, steps, eta, predicts, clip_x0)
-        finite = torch.isfinite(x).all(1)
-        if not finite.all():
-            b = int((~finite).nonzero()[0])
-            raise NonFiniteFrameError(
-                f"rollout produced a non-finite frame {f + 1} (of {n_frames}; frame 0 is the "
-                f"initial state) for character {b // K}, sample {b % K}"
-            )
-        out[:, f] = x.float().cpu()
-        cond = x
-    return out.reshape(C, K, n_frames, -1)
+    """The auto-regressive loop (A-MDM §3.1): :math:`x_f = \\mathrm{step}(f, x_{f-1})`.
+
+    Starting from ``x0`` (B, ...), it calls ``step`` for the frames ``f = first, ...,
+    first + n_frames - 1`` and feeds each result back as the next condition, so that
+    :math:`x_f \\sim p_\\theta(x_f | x_{f-1})` when ``step`` samples the model (one reverse
+    diffusion chain per frame, :func:`next_frame`). Every technique is a step: random sampling,
+    inpainting (a hook), inbetweening (a chain started from a noised keyframe), beam search (a
+    search, then the best plan's frames), AAMDM (GAN draft + polishing + decoding). The loop
+    owns what they share: the tqdm bar, the output buffer and the non-finite check
+    (:func:`check_finite`, with ``who`` naming a batch row and ``desc`` the technique).
+
+    Args:
+        step: ``step(f, x_prev) -> x_f``, (B, ...) -> (B, ...); all randomness comes from the
+            generator it closes over, consumed in frame order.
+        x0: (B, ...) the condition of the first frame (frame ``first - 1``).
+        n_frames: frames to generate, >= 1.
+        first: the number of the first generated frame (a beam search's candidates start
+            after the frames already committed).
+        stop: ``stop(f) -> bool`` after frame f: True ends the loop early (beam search when
+            every character has completed its task); the result then holds frames up to f.
+        who: names batch row ``b`` in the error (default "batch row b").
+        desc: the bar's label and the error's subject.
+        progress: show a tqdm bar over frames.
+
+    Returns:
+        (B, F, ...) the generated frames :math:`x_{first}..`, float32 on the CPU (the steps'
+        own outputs, which stay on the device, are what is fed back).
+
+    Raises:
+        NonFiniteFrameError: a frame holds NaN/Inf; names the frame and the row.
+    """
+    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
+        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
+    out: Tensor | None = None  # (B, F, ...) float32, CPU
+    x = x0
+    n = 0
+    for i in tqdm(range(n_frames), disable=not progress, desc=desc, unit="frame"):
+        f = first + i
+        x = check_finite(step(f, x), f, who, desc)
+        if out is None:
+            out = torch.empty(x.shape[0], n_frames, *x.shape[1:], dtype=torch.float32)
+        out[:, i] = x.float().cpu()
+        n = i + 1
+        if stop is not None and stop(f):
+            break
+    return out if n == n_frames else out[:, :n]
+
+
+@dataclass
+class SamplerSettings:
+    """What sampling from a checkpoint needs besides the network, as its metadata says."""
+
+    normalizer: Normalizer | None
+    """Feature standardisation (None if the checkpoint stores none)."""
+    schedule: NoiseSchedule | None
+    """The denoiser's noise schedule (None for the baselines)."""
+    predicts: str
+    """What the denoiser outputs: 'eps' or 'x0'."""
+    clip_x0: Any
+    """The training-time clamp of the clean estimate, exactly as stored (None, a number or a
+    per-feature range); the samplers of :mod:`minimdm.diffusion` interpret it."""
+    layout: FeatureLayout | None
+    """The feature layout (joint names, fps)."""
+    skeleton: Skeleton | None
+    """The skeleton."""
+
+
+def sampler_settings(ckpt: Checkpoint, device: torch.device | str = "cpu") -> SamplerSettings:
+    """Read a checkpoint's sampler settings (the one place that reads them).
+
+    ``predicts`` falls back to the network's own (a denoiser) or ``"eps"``; the schedule is
+    built on ``device``; ``clip_x0`` is passed through unchanged.
+    """
+    meta = ckpt.metadata
+    diff = meta.get("diffusion") or {}
+    norm = Normalizer.from_dict(ckpt.normalizer) if ckpt.normalizer is not None else None
+    layout = ckpt.feature_layout
+    skeleton = ckpt.skeleton
+    return SamplerSettings(
+        normalizer=norm,
+        schedule=ckpt.schedule(device) if diff else None,
+        predicts=diff.get("predicts") or getattr(ckpt.model, "predicts", None) or "eps",
+        clip_x0=diff.get("clip_x0"),
+        layout=FeatureLayout.from_dict(layout) if layout is not None else None,
+        skeleton=Skeleton.from_dict(skeleton) if skeleton is not None else None,
+    )
 
 
 @torch.no_grad()
@@ -231,17 +336,14 @@ def rollout(
     model, ckpt = _resolve(model_or_checkpoint, device)
     dev = torch.device(device) if device is not None else next(model.parameters()).device
     model = model.to(dev).eval()
-    predicts = "eps"
+    predicts = model.predicts if isinstance(model, MLPDenoiser) else "eps"
     if ckpt is not None:
-        if normalizer is None and ckpt.normalizer is not None:
-            normalizer = Normalizer.from_dict(ckpt.normalizer)
-        if schedule is None and ckpt.metadata.get("diffusion"):
-            schedule = ckpt.schedule(dev)
-        predicts = (ckpt.metadata.get("diffusion") or {}).get("predicts", "eps")
+        settings = sampler_settings(ckpt, dev)
+        normalizer = normalizer if normalizer is not None else settings.normalizer
+        schedule = schedule if schedule is not None else settings.schedule
+        predicts = settings.predicts
         if clip_x0 == "checkpoint":
-            clip_x0 = (ckpt.metadata.get("diffusion") or {}).get("clip_x0")
-    elif isinstance(model, MLPDenoiser):
-        predicts = model.predicts
+            clip_x0 = settings.clip_x0
     if clip_x0 == "checkpoint":
         clip_x0 = None
     if schedule is not None:
@@ -266,9 +368,19 @@ def rollout(
     # Small batches are launch-bound: extra threads only add synchronisation, and on a shared
     # 2-core machine they made batch-1 sampling 10x slower.
     n_threads = 1 if dev.type == "cpu" and C * K < SMALL_BATCH else None
-    with _threads(n_threads):
-        args = (normalizer, generator, schedule, steps, eta, predicts, clip_x0, progress)
-        normalized = _sample_frames(model, x0.to(dev), n_frames, K, *args)
+    cond = x0.to(dev)
+    cond = normalizer.normalize(cond) if normalizer is not None else cond
+    cond = cond.repeat_interleave(K, dim=0)  # (C K, D), character-major
+
+    def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
+        return next_frame(model, x_prev, generator, schedule, steps, eta, predicts, clip_x0)
+
+    with num_threads(n_threads):
+        normalized = autoregress(
+            step, cond, n_frames, who=lambda b: f"character {b // K}, sample {b % K}",
+            progress=progress,
+        )  # fmt: skip
+    normalized = normalized.reshape(C, K, n_frames, -1)  # (C, K, F, D)
     feats = normalizer.denormalize(normalized) if normalizer is not None else normalized.clone()
     positions = None
     if decode_positions:

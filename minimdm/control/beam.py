@@ -9,6 +9,12 @@ A score function is any callable ``score_fn(future) -> (b, P)`` tensor, **higher
 where ``future`` is a :class:`Future`: the candidates' features and, decoded from the current
 root pose, their root path, headings and joint positions. :mod:`minimdm.control.scores` has
 target reaching, heading and speed.
+
+Both loops of the search run on the one rollout loop,
+:func:`~minimdm.amdm.sampling.autoregress`: the candidates' horizon is a rollout of H frames of
+the (b P) batch, and the search itself is the step of the outer rollout: at a frame where the
+last plan has been committed, it searches and takes the best plan; at every frame it returns
+that plan's next frame.
 """
 
 from __future__ import annotations
@@ -20,8 +26,8 @@ from functools import cached_property
 
 import torch
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
+from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion.features import StartPose, decode, decode_root
 
@@ -157,23 +163,30 @@ def beam_search(
     B, D = x0.shape
     sp = as_start_pose(start_pose, B)
     xy, heading = sp.xy.clone(), sp.heading.clone()  # (B, 2), (B,) the current root pose
-    cond = cm.normalize(x0)  # (B, D)
     out = torch.empty(B, n_frames, D, dtype=torch.float32)  # normalized frames, CPU
     best_scores = torch.full((B, n_frames), float("nan"))
     done_at = torch.full((B,), -1, dtype=torch.long)
-    active = torch.arange(B)
-    bar = tqdm(total=n_frames, disable=not progress, desc="beam search", unit="frame")
-    f = 0  # frames committed so far
-    while f < n_frames and active.numel() > 0:
+    # the current search: the characters searching, its best plan, the rows still committing
+    # its frames and how many of them are left
+    s = {"active": torch.arange(B), "left": 0}
+
+    def search(f: int, cond: Tensor) -> None:
+        """Propose P futures of H frames after frame f - 1 for the active characters; keep the
+        best plan (its first ``commit`` frames, at most to the end)."""
+        active = s["active"] = s["active"][done_at[s["active"]] < 0]
         b = active.numel()
         c = cond[active].repeat_interleave(P, dim=0)  # (b P, D), character-major
-        cand = torch.empty(b * P, H, D, dtype=c.dtype, device=c.device)
-        for h in range(H):
-            c = sample_frame(cm, c, generator, frame=f + 1 + h)
-            cand[:, h] = c
-        cand = cand.reshape(b, P, H, D)
+
+        def candidate(r: int) -> str:
+            return f"character {int(active[r // P])}, candidate {r % P}"
+
+        def propose(h: int, x: Tensor) -> Tensor:
+            return sample_frame(cm, x, generator)
+
+        cand = autoregress(propose, c, H, first=f, who=candidate, desc="beam search")
+        cand = cand.to(c.device, c.dtype).reshape(b, P, H, D)  # normalized
         future = Future(
-            cm.denormalize(cand).float().cpu(), xy[active], heading[active], active, f, cm.fps
+            cm.denormalize(cand).float().cpu(), xy[active], heading[active], active, f - 1, cm.fps
         )
         scores = torch.as_tensor(score_fn(future)).to("cpu", torch.float64)
         if scores.shape != (b, P):
@@ -181,33 +194,43 @@ def beam_search(
                 f"score_fn must return shape (b={b}, P={P}), got {tuple(scores.shape)}"
             )
         if torch.isnan(scores).any():
-            raise ValueError(f"score_fn returned NaN at frame {f + 1}")
+            raise ValueError(f"score_fn returned NaN at frame {f}")
         best = scores.argmax(dim=1)  # (b,)
-        plan = cand[torch.arange(b), best.to(cand.device)]  # (b, H, D) normalized
-        plan_feats = future.features[torch.arange(b), best]  # (b, H, D) feature units
-        best_score = scores[torch.arange(b), best].float()
-        going = torch.arange(b)  # rows of this search still committing frames
-        for j in range(min(commit, n_frames - f)):
-            rows = active[going]
-            out[rows, f + j] = plan[going, j].float().cpu()
-            cond[rows] = plan[going, j]
-            best_scores[rows, f + j] = best_score[going]
-            step = Future(plan_feats[going, j][:, None, None], xy[rows], heading[rows], rows,
-                          f + j, cm.fps)  # fmt: skip
-            xy[rows], heading[rows] = step.root_xy[:, 0, 0], step.heading[:, 0, 0]
-            if stop_fn is not None:
-                stop = torch.as_tensor(stop_fn(step), dtype=torch.bool).cpu().reshape(-1)
-                if stop.shape != (len(rows),):
-                    raise ValueError(
-                        f"stop_fn must return shape (b={len(rows)},), got {tuple(stop.shape)}"
-                    )
-                done_at[rows[stop]] = f + j + 1
-                going = going[~stop]
-        k = min(commit, n_frames - f)
-        f += k
-        bar.update(k)
-        active = active[done_at[active] < 0]
-    bar.close()
+        s["plan"] = cand[torch.arange(b), best.to(cand.device)]  # (b, H, D) normalized
+        s["plan_feats"] = future.features[torch.arange(b), best]  # (b, H, D) feature units
+        s["best_score"] = scores[torch.arange(b), best].float()
+        s["going"] = torch.arange(b)  # rows of this search still committing frames
+        s["j"], s["left"] = 0, min(commit, n_frames - f + 1)
+
+    def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D): the best plan's next frame
+        if s["left"] == 0:
+            search(f, cond)
+        j, going = s["j"], s["going"]
+        rows = s["active"][going]
+        x = cond.clone()  # characters that have stopped keep their state
+        x[rows] = s["plan"][going, j]
+        best_scores[rows, f - 1] = s["best_score"][going]
+        now = Future(s["plan_feats"][going, j][:, None, None], xy[rows], heading[rows], rows,
+                     f - 1, cm.fps)  # fmt: skip
+        xy[rows], heading[rows] = now.root_xy[:, 0, 0], now.heading[:, 0, 0]
+        if stop_fn is not None:
+            stop = torch.as_tensor(stop_fn(now), dtype=torch.bool).cpu().reshape(-1)
+            if stop.shape != (len(rows),):
+                raise ValueError(
+                    f"stop_fn must return shape (b={len(rows)},), got {tuple(stop.shape)}"
+                )
+            done_at[rows[stop]] = f
+            s["going"] = going[~stop]
+        s["j"], s["left"] = j + 1, s["left"] - 1
+        return x
+
+    def all_done(f: int) -> bool:  # every character has completed its task
+        return s["left"] == 0 and bool((done_at[s["active"]] >= 0).all())
+
+    frames = autoregress(
+        step, cm.normalize(x0), n_frames, stop=all_done, desc="beam search", progress=progress
+    )  # (B, f, D)
+    out[:, : frames.shape[1]] = frames
     n_out = n_frames
     feats = cm.denormalize(out)
     for i in torch.nonzero(done_at >= 0)[:, 0].tolist():

@@ -1,11 +1,12 @@
 """What every control technique shares: the model it steers, one sampled frame, the result.
 
 :class:`ControlModel` gathers what sampling a frame needs (network, normalizer, noise schedule,
-``predicts``, ``clip_x0``), read from a loaded :class:`~minimdm.checkpoint.Checkpoint` the way
-:func:`minimdm.amdm.sampling.rollout` reads it. :func:`sample_frame` draws one frame through
-:func:`minimdm.amdm.sampling.next_frame`, i.e. through the one sampler loop of
-:mod:`minimdm.diffusion`; the techniques differ only in the hook and the start of the chain they
-hand it. :class:`Motion` is what they return.
+``predicts``, ``clip_x0``), read from a loaded :class:`~minimdm.checkpoint.Checkpoint` by
+:func:`minimdm.amdm.sampling.sampler_settings`, as :func:`~minimdm.amdm.sampling.rollout` reads
+it. :func:`sample_frame` draws one frame through :func:`minimdm.amdm.sampling.next_frame`, i.e.
+through the one sampler loop of :mod:`minimdm.diffusion`; the techniques run it frame after
+frame on the one rollout loop, :func:`minimdm.amdm.sampling.autoregress`, and differ only in the
+hook and the start of the chain they hand it. :class:`Motion` is what they return.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
-from minimdm.amdm.sampling import NonFiniteFrameError, next_frame
+from minimdm.amdm.sampling import check_finite, next_frame, sampler_settings
 from minimdm.checkpoint import Checkpoint, load_checkpoint
 from minimdm.diffusion import Hook, NoiseSchedule
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
@@ -104,19 +105,13 @@ def as_control_model(
         model = load_checkpoint(model, device=device or "cpu")
     layout = skeleton = None
     if isinstance(model, Checkpoint):
-        meta = model.metadata
-        diff = meta.get("diffusion") or {}
-        if normalizer is None and model.normalizer is not None:
-            normalizer = Normalizer.from_dict(model.normalizer)
-        if schedule is None and diff:
-            schedule = model.schedule(device or "cpu")
-        predicts = predicts or diff.get("predicts")
+        settings = sampler_settings(model, device or "cpu")
+        normalizer = normalizer if normalizer is not None else settings.normalizer
+        schedule = schedule if schedule is not None else settings.schedule
+        predicts = predicts or settings.predicts
         if clip_x0 == "checkpoint":
-            clip_x0 = diff.get("clip_x0")
-        if model.feature_layout is not None:
-            layout = FeatureLayout.from_dict(model.feature_layout)
-        if model.skeleton is not None:
-            skeleton = Skeleton.from_dict(model.skeleton)
+            clip_x0 = settings.clip_x0
+        layout, skeleton = settings.layout, settings.skeleton
         net = model.model
     elif isinstance(model, nn.Module):
         net = model
@@ -183,8 +178,10 @@ def sample_frame(
     """One frame :math:`x_f` (B, D) from :math:`x_{f-1}` (B, D), in normalized space.
 
     Calls :func:`minimdm.amdm.sampling.next_frame` (the sampler of :mod:`minimdm.diffusion`) with
-    the technique's ``hook`` and chain start; raises :class:`NonFiniteFrameError` naming
-    ``frame`` (1-based) if the result holds NaN/Inf.
+    the technique's ``hook`` and chain start. With ``frame`` (1-based) given, the result is
+    checked by :func:`~minimdm.amdm.sampling.check_finite` (:class:`NonFiniteFrameError` naming
+    the frame); the rollout loop :func:`~minimdm.amdm.sampling.autoregress` checks every frame
+    it makes, so the techniques leave it out.
     """
     x = next_frame(
         cm.net,
@@ -202,11 +199,8 @@ def sample_frame(
     if isinstance(cm.net, MLPRegressor) and (torch.as_tensor(cm.noise) != 0).any():
         eps = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
         x = x + torch.as_tensor(cm.noise, device=x.device, dtype=x.dtype) * eps
-    finite = torch.isfinite(x).all(1)
-    if not finite.all():
-        b = int((~finite).nonzero()[0])
-        where = f"frame {frame}" if frame is not None else "a frame"
-        raise NonFiniteFrameError(f"sampling produced a non-finite {where} for character {b}")
+    if frame is not None:
+        check_finite(x, frame, lambda b: f"character {b}", "sampling")
     return x
 
 

@@ -1,7 +1,7 @@
 """Spatial inpainting and keyframe inbetweening (A-MDM §4.3), frame after frame.
 
-Both run the ordinary auto-regressive loop; they differ from random sampling only in what they
-hand the sampler of each frame:
+Both run the one auto-regressive loop, :func:`~minimdm.amdm.sampling.autoregress`; they differ
+from random sampling only in what they hand the sampler of each frame:
 
 * :func:`inpaint` passes the hook of A-MDM eq. 4 (:func:`~minimdm.control.hooks.inpaint_hook`),
   which overwrites the user's features with their noised targets after every reverse step;
@@ -18,8 +18,8 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from tqdm.auto import tqdm
 
+from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.diffusion import q_sample
 from minimdm.motion.features import StartPose
@@ -126,16 +126,20 @@ def inpaint(
     sp = as_start_pose(start_pose, B)
     tgt_n = cm.normalize(tgt).to(cm.device)  # (B, F, D)
     m = m.to(cm.device)
-    cond = cm.normalize(x0)
-    out = torch.empty(B, F, D)
-    for f in tqdm(range(F), disable=not progress, desc="inpaint", unit="frame"):
-        hook = inpaint_hook(cm.schedule, tgt_n[:, f], m[:, f], generator, int(stops[f]))
-        cond = sample_frame(cm, cond, generator, hook=hook, frame=f + 1)
-        out[:, f] = cond.float().cpu()
+
+    def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D) under eq. 4's hook
+        hook = inpaint_hook(cm.schedule, tgt_n[:, f - 1], m[:, f - 1], generator, int(stops[f - 1]))
+        return sample_frame(cm, cond, generator, hook=hook)
+
+    out = autoregress(step, cm.normalize(x0), F, who=_character, desc="inpaint", progress=progress)
     feats = cm.denormalize(out)
     exact = (stops == -1)[None, :, None] & m.cpu()
     feats = torch.where(exact, tgt, feats)  # undo the normalize/denormalize rounding
     return Motion.from_normalized(cm, out, sp, batched, {"t_stop": stops}, features=feats)
+
+
+def _character(b: int) -> str:
+    return f"character {b}"
 
 
 def _keyframes(keyframe: Any, at: Any, n_frames: int, D: int, B: int) -> tuple[Tensor, list[int]]:
@@ -218,21 +222,26 @@ def inbetween(
     keys_n = cm.normalize(keys).to(cm.device)  # (B, K, D)
     sp = as_start_pose(start_pose, B)
     T = cm.schedule.T
-    cond = cm.normalize(x0)
-    out = torch.empty(B, n_frames, D)
-    t_starts, k, prev = [], 0, 0
-    for f in tqdm(range(1, n_frames + 1), disable=not progress, desc="inbetween", unit="frame"):
+    t_starts: list[int] = []
+    key = {"k": 0, "prev": 0}  # the next keyframe and the frame of the previous one
+
+    def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D), its chain started by eq. 5
+        k, prev = key["k"], key["prev"]
         if k < len(ats):
             t0 = inbetween_t_start(f - prev, ats[k] - prev, T)
             x_start = q_sample(cm.schedule, keys_n[:, k], t0, generator=generator)  # (B, D)
-            cond = sample_frame(cm, cond, generator, t_start=t0, x_start=x_start, frame=f)
+            x = sample_frame(cm, cond, generator, t_start=t0, x_start=x_start)
             if f == ats[k]:
-                k, prev = k + 1, f
+                key["k"], key["prev"] = k + 1, f
         else:
             t0 = -1
-            cond = sample_frame(cm, cond, generator, frame=f)
+            x = sample_frame(cm, cond, generator)
         t_starts.append(t0)
-        out[:, f - 1] = cond.float().cpu()
+        return x
+
+    out = autoregress(
+        step, cm.normalize(x0), n_frames, who=_character, desc="inbetween", progress=progress
+    )
     info = {"t_start": t_starts, "at": ats, "keyframes": keys if batched else keys[0]}
     return Motion.from_normalized(cm, out, sp, batched, info)
 
