@@ -24,9 +24,9 @@ import sys
 import torch
 from common import hardware
 
-from minimdm.aamdm.eval import dataset_quality, guidance_study, motion_comparison
 from minimdm.aamdm.motion_train import AAMDMTrainConfig, load_motion_data
 from minimdm.checkpoint import load_checkpoint
+from minimdm.studies.aamdm_motion import dataset_quality, guidance_study, motion_comparison
 
 
 def load_amdm(where: str, device: str):

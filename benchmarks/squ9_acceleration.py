@@ -28,8 +28,9 @@ import time
 import torch
 from common import hardware
 
-from minimdm.studies.report import format_table, plot_panels
+from minimdm.studies.report import plot_panels
 from minimdm.studies.squ9_acceleration import Squ9Study, Squ9StudyConfig, with_budget
+from minimdm.utils import format_table
 
 
 def main() -> None:
@@ -55,14 +56,14 @@ def main() -> None:
     rows, samples = study.evaluate()
     for r in rows:
         print(json.dumps({"study": "squ9", **r, "hardware": hw}), flush=True)
-    print(format_table(rows, _KEYS), file=sys.stderr)
+    print(format_table(rows, _KEYS[1:], digits=3, first=_KEYS[0]), file=sys.stderr)
     if args.figure:
         plot_panels(study.x_eval, samples, rows).savefig(args.figure, dpi=90)
     if args.ablation:
         abl, _ = study.ablation()
         for r in abl:
             print(json.dumps({"study": "squ9_ablation", **r, "hardware": hw}), flush=True)
-        print(format_table(abl), file=sys.stderr)
+        print(format_table(abl, digits=3, first="T_gan"), file=sys.stderr)
     if args.save:
         study.save(args.save)
     print(f"total {time.perf_counter() - t0:.0f} s", file=sys.stderr)

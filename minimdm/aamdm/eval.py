@@ -12,14 +12,14 @@ length error, joint acceleration) plus two distribution measures in the spirit o
 ``DIV``, MDM's diversity (the mean distance between random pairs of generated poses, to be
 compared with the data's), and ``FD``, a Fréchet distance between Gaussian fits of generated and
 dataset poses (FID without an inception network: poses are root-relative joint positions in cm).
-:func:`frames_per_second` times one character (batch 1), the interactive setting.
+
+The harnesses that build the chapter's tables from these (the comparison with A-MDM, the
+guidance study, the dataset row, frames per second) live in :mod:`minimdm.studies.aamdm_motion`.
 """
 
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -27,7 +27,7 @@ from torch import Tensor
 
 from minimdm.aamdm.model import Guide
 from minimdm.aamdm.motion import AAMDMMotion
-from minimdm.amdm.sampling import NonFiniteFrameError, Rollout
+from minimdm.amdm.sampling import Rollout, autoregress
 from minimdm.motion import metrics
 from minimdm.motion.features import StartPose, decode, start_pose_of
 from minimdm.motion.skeleton import wrap_angle
@@ -42,7 +42,6 @@ __all__ = [
     "pose_frechet_distance",
     "motion_quality",
     "heading_tracking_error",
-    "frames_per_second",
 ]
 
 INITIAL_CLIPS = (
@@ -142,26 +141,28 @@ def rollout_aamdm(
     if direction is not None:
         direction = torch.as_tensor(direction, dtype=torch.float32, device=dev).expand(C)
         direction = direction.repeat_interleave(K)
-    xz = model.encode(init_y.to(dev), init_x.to(dev)).repeat_interleave(K, dim=0)  # (C K, XZ)
-    feats, lat = [], []
-    for f in range(n_frames):
+    y0 = init_y.to(dev).repeat_interleave(K, dim=0)  # (C K, D)
+    xz0 = model.encode(init_y.to(dev), init_x.to(dev)).repeat_interleave(K, dim=0)  # (C K, XZ)
+    XZ = xz0.shape[1]
+
+    def step(f: int, frame: Tensor) -> Tensor:
+        """Frame f as [xz, y] (C K, XZ + D): sample the latent, then decode the pose."""
+        nonlocal heading
         guide = None
         if direction is not None and guide_scale > 0:
             guide = direction_guide(model, wrap_angle(direction - heading), guide_scale)
-        xz = model.transition.sample(xz, generator, guide=guide, T_adm=T_adm)
+        xz = model.transition.sample(frame[:, :XZ].contiguous(), generator, guide=guide,
+                                     T_adm=T_adm)  # fmt: skip
         y = model.decode(xz)  # (C K, D)
-        ok = torch.isfinite(y).all(1) & torch.isfinite(xz).all(1)
-        if not ok.all():
-            b = int((~ok).nonzero()[0])
-            raise NonFiniteFrameError(
-                f"rollout produced a non-finite frame {f + 1} (of {n_frames}) for character "
-                f"{b // K}, sample {b % K}"
-            )
         heading = heading + y[:, 2]  # the yaw rate d_r
-        feats.append(y.float().cpu())
-        lat.append(xz.float().cpu())
-    features = torch.stack(feats, 1).reshape(C, K, n_frames, -1)
-    normalized = torch.stack(lat, 1).reshape(C, K, n_frames, -1)
+        return torch.cat([xz, y], dim=1)
+
+    frames = autoregress(  # (C K, F, XZ + D)
+        step, torch.cat([xz0, y0], dim=1), n_frames,
+        who=lambda b: f"character {b // K}, sample {b % K}",
+    )  # fmt: skip
+    features = frames[..., XZ:].reshape(C, K, n_frames, -1)
+    normalized = frames[..., :XZ].reshape(C, K, n_frames, -1)
     positions = None
     if decode_positions:
         sp = StartPose(xy0[:, None].expand(C, K, 2).double(), h0[:, None].expand(C, K).double())
@@ -215,15 +216,12 @@ def motion_quality(
     (:func:`local_poses` of the dataset).
     """
     pos = rollout.positions  # (C, K, F, J, 3)
-    C, K, F, J, _ = pos.shape
     ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
-    flat = pos.reshape(C * K, F, J, 3)
-    poses = local_poses(rollout.features, J)
+    m = metrics.motion_metrics(pos, skeleton.parents, skeleton.foot_indices, ref,
+                               foot_offset=foot_offset)  # fmt: skip
+    poses = local_poses(rollout.features, pos.shape[-2])
     return {
-        "APD": sum(metrics.apd(pos[c]) for c in range(C)) / C,
-        "FS": metrics.foot_sliding(flat, skeleton.foot_indices, foot_offset=foot_offset),
-        "Bone.Err": metrics.bone_length_error(flat, skeleton.parents, ref),
-        "Jnt.Accel": metrics.joint_acceleration(flat),
+        **{k: m[k] for k in ("APD", "FS", "Bone.Err", "Jnt.Accel")},
         "DIV": pose_diversity(poses),
         "FD": pose_frechet_distance(poses, data_poses),
     }
@@ -237,220 +235,4 @@ def heading_tracking_error(rollout: Rollout, start: StartPose, direction: Tensor
     heading = h0 + torch.cumsum(feats[..., 2], dim=-1)  # (C, K, F)
     cmd = torch.as_tensor(direction, dtype=torch.float32).expand(C).reshape(C, 1, 1)
     err = wrap_angle(heading - cmd)[..., settle:].abs()
-    return float(err.mean() * 180 / math.pi)
-
-
-def frames_per_second(step: Callable[[], Any], n_frames: int = 60, warmup: int = 5) -> float:
-    """Frames per second of ``step()``, which makes one frame (batch 1), best of two passes."""
-    for _ in range(warmup):
-        step()
-    best = float("inf")
-    for _ in range(2):
-        t0 = time.perf_counter()
-        for _ in range(n_frames):
-            step()
-        best = min(best, time.perf_counter() - t0)
-    return n_frames / best
-
-
-# --------------------------------------------------------------------------------------------
-# The comparison of AAMDM §4.1 on our data
-
-
-def _amdm_stepper(ckpt: Any, steps: int | None, eta: float, device: torch.device):
-    """``(next_frame(cond, generator) -> frame, normalize)`` for an A-MDM checkpoint."""
-    from minimdm.amdm.sampling import next_frame
-    from minimdm.motion.features import Normalizer
-
-    d = ckpt.metadata.get("diffusion") or {}
-    sched = ckpt.schedule(device)
-    norm = Normalizer.from_dict(ckpt.normalizer)
-    model = ckpt.model.to(device).eval()
-
-    def step(cond: Tensor, g: torch.Generator | None) -> Tensor:
-        return next_frame(
-            model, cond, g, sched, steps, eta, d.get("predicts", "eps"), d.get("clip_x0")
-        )
-
-    return step, norm
-
-
-def motion_comparison(
-    amdm: Any,
-    aamdm: AAMDMMotion,
-    data: dict,
-    n_frames: int = 120,
-    n_samples: int = 8,
-    amdm_steps: tuple[int | None, ...] = (5, None),
-    eta: float = 1.0,
-    seed: int = 0,
-    fps_frames: int = 60,
-    device: str = "cpu",
-    names: tuple[str, ...] = INITIAL_CLIPS,
-    include_unpolished: bool = True,
-) -> tuple[list[dict], dict[str, Rollout]]:
-    """A-MDM at 5 (DDIM) and at all T steps vs AAMDM (3 + 2), in one run (AAMDM Table 1).
-
-    Every method rolls out ``n_samples`` futures of ``n_frames`` from the same initial frames
-    (:func:`initial_states` of ``names``) with the same seed, then :func:`motion_quality` scores
-    them and :func:`frames_per_second` times one character (network calls plus decoding a
-    pose; the CPU runs one thread for batch 1). ``amdm`` is a loaded A-MDM
-    :class:`~minimdm.checkpoint.Checkpoint`. Returns the rows and the rollouts by method name.
-    """
-    from minimdm.amdm.sampling import rollout
-
-    dev = torch.device(device)
-    sk = data["skeleton"]
-    init = initial_states(data, names)
-    data_poses = local_poses(torch.cat(data["y"]), len(sk))
-    all_pos = torch.cat([torch.as_tensor(c.positions) for c in data["clips"]])
-    foot = metrics.foot_contact_offsets(all_pos, sk.foot_indices)
-    T = int((amdm.metadata.get("diffusion") or {}).get("T", 0))
-    aamdm = aamdm.to(dev).eval()
-    rows, rolls = [], {}
-    methods: list[tuple[str, Any]] = [(f"amdm{s or T}", s) for s in amdm_steps]
-    methods += [("aamdm", None)] + ([("aamdm_3+0", 0)] if include_unpolished else [])
-    for name, arg in methods:
-        g = torch.Generator(dev).manual_seed(seed)
-        t0 = time.perf_counter()
-        if name.startswith("amdm"):
-            r = rollout(
-                amdm, init["y"], n_frames, n_samples, arg, g, start_pose=init["start"], eta=eta,
-                device=dev,
-            )  # fmt: skip
-            step_fn, norm = _amdm_stepper(amdm, arg, eta, dev)
-            state = {"x": norm.normalize(init["y"][:1]).to(dev)}
-            calls = arg or T
-
-            def one(state=state, step_fn=step_fn):
-                state["x"] = step_fn(state["x"], None)
-
-        else:
-            r = rollout_aamdm(
-                aamdm, init["y"], init["x"], n_frames, n_samples, g, start_pose=init["start"],
-                T_adm=arg,
-            )  # fmt: skip
-            state = {"x": aamdm.encode(init["y"][:1].to(dev), init["x"][:1].to(dev))}
-            calls = aamdm.transition.T_gan + (aamdm.transition.T_adm if arg is None else arg)
-
-            def one(state=state, arg=arg):
-                with torch.no_grad():
-                    state["x"] = aamdm.transition.sample(state["x"], None, T_adm=arg)
-                    aamdm.decode(state["x"])
-
-        seconds = time.perf_counter() - t0
-        with _one_thread(dev):
-            fps = frames_per_second(one, fps_frames)
-        row = {"method": name, "network_calls": calls, **motion_quality(r, sk, data_poses, foot)}
-        row.update(fps=fps, rollout_s=seconds)
-        rows.append({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()})
-        rolls[name] = r
-    return rows, rolls
-
-
-class _one_thread:
-    def __init__(self, dev: torch.device) -> None:
-        self.on = dev.type == "cpu"
-
-    def __enter__(self):
-        self.old = torch.get_num_threads()
-        if self.on:
-            torch.set_num_threads(1)
-
-    def __exit__(self, *exc):
-        torch.set_num_threads(self.old)
-
-
-def dataset_quality(data: dict) -> dict[str, float]:
-    """The data's own DIV and the metrics of its clips (the target row of the table)."""
-    sk = data["skeleton"]
-    poses = local_poses(torch.cat(data["y"]), len(sk))
-    pos = [torch.as_tensor(c.positions, dtype=torch.float64) for c in data["clips"]]
-    all_pos = torch.cat(pos)
-    foot = metrics.foot_contact_offsets(all_pos, sk.foot_indices)
-    ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
-    n = sum(len(p) for p in pos)
-    w = [len(p) / n for p in pos]
-    return {
-        "FS": sum(
-            wi * metrics.foot_sliding(p, sk.foot_indices, foot_offset=foot)
-            for wi, p in zip(w, pos, strict=True)
-        ),
-        "Bone.Err": metrics.bone_length_error(all_pos, sk.parents, ref),
-        "Jnt.Accel": sum(wi * metrics.joint_acceleration(p) for wi, p in zip(w, pos, strict=True)),
-        "DIV": pose_diversity(poses),
-    }
-
-
-def guidance_study(
-    model: AAMDMMotion,
-    data: dict,
-    turns_deg: tuple[float, ...] = (90.0, -90.0, 180.0),
-    scales: tuple[float, ...] = (0.0, 0.5, 2.0),
-    names: tuple[str, ...] = ("walk", "run"),
-    n_frames: int = 150,
-    n_samples: int = 4,
-    settle: int = 45,
-    seed: int = 0,
-    device: str = "cpu",
-) -> list[dict]:
-    """Root-direction control (AAMDM §3.5, eq. 13): heading tracking error per guidance scale.
-
-    From each initial frame of ``names``, the command is the start heading turned by each of
-    ``turns_deg``; ``TE`` is the mean absolute heading error in degrees after ``settle`` frames
-    (AAMDM's TE-UC on the realised root heading), ``TE_x`` the error of the facing directions
-    in the generated :math:`\\hat x` (the paper's :math:`|\\bar x - \\hat x|`, in degrees), and
-    ``fps`` the speed for one character. Scale 0 is the unguided model.
-    """
-    dev = torch.device(device)
-    model = model.to(dev).eval()
-    init = initial_states(data, names)
-    sk = data["skeleton"]
-    data_poses = local_poses(torch.cat(data["y"]), len(sk))
-    rows = []
-    for scale in scales:
-        te, te_x, fd = [], [], []
-        for turn in turns_deg:
-            cmd = init["start"].heading.float() + math.radians(turn)  # (C,)
-            g = torch.Generator(dev).manual_seed(seed)
-            r = rollout_aamdm(
-                model, init["y"], init["x"], n_frames, n_samples, g, start_pose=init["start"],
-                direction=cmd, guide_scale=scale,
-            )  # fmt: skip
-            te.append(heading_tracking_error(r, init["start"], cmd, settle))
-            te_x.append(_x_direction_error(model, r, init["start"], cmd, settle))
-            fd.append(pose_frechet_distance(local_poses(r.features, len(sk)), data_poses))
-        state = {"x": model.encode(init["y"][:1].to(dev), init["x"][:1].to(dev))}
-        cmd1 = torch.zeros(1, device=dev)
-
-        def one(state=state, scale=scale, cmd1=cmd1):
-            guide = direction_guide(model, cmd1, scale) if scale > 0 else None
-            state["x"] = model.transition.sample(state["x"], None, guide=guide)
-            model.decode(state["x"])
-
-        with _one_thread(dev), torch.no_grad():
-            fps = frames_per_second(one, 30)
-        rows.append(
-            {
-                "guide_scale": scale,
-                "TE_deg": round(sum(te) / len(te), 2),
-                "TE_x_deg": round(sum(te_x) / len(te_x), 2),
-                "FD": round(sum(fd) / len(fd), 1),
-                "fps": round(fps, 1),
-            }
-        )
-    return rows
-
-
-def _x_direction_error(model, r: Rollout, start: StartPose, cmd: Tensor, settle: int) -> float:
-    """Degrees between the facing direction of the first horizon in x-hat and the command."""
-    feats = r.features  # (C, K, F, D)
-    C = feats.shape[0]
-    h0 = torch.as_tensor(start.heading, dtype=torch.float32).reshape(C, 1, 1)
-    heading = h0 + torch.cumsum(feats[..., 2], dim=-1)
-    x = model.x_of(r.normalized.to(model.xz_mean.device)).cpu()  # (C, K, F, 12)
-    n_h = len(model.config.horizons)
-    d = x[..., 2 * n_h : 2 * n_h + 2]
-    facing = heading + torch.atan2(d[..., 1], d[..., 0])
-    err = wrap_angle(facing - cmd.reshape(C, 1, 1))[..., settle:].abs()
     return float(err.mean() * 180 / math.pi)

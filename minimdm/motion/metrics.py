@@ -291,7 +291,10 @@ def motion_metrics(
     """The Table 1 row for ``K`` samples from one initial state.
 
     Args:
-        samples: ``(K, F, J, 3)`` generated motions (the paper: K = 50, F = 150).
+        samples: ``(K, F, J, 3)`` generated motions (the paper: K = 50, F = 150);
+            ``(C, K, F, J, 3)`` for C initial states (APD is the mean of their APDs, the
+            other metrics pool all motions; no ADE/FDE); or one motion ``(F, J, 3)`` (no APD,
+            e.g. a clip of the dataset).
         parents, foot_joints: the skeleton.
         reference_lengths: ``(B,)`` ground-truth bone lengths in metres.
         reference: ``(F_ref, J, 3)`` ground-truth continuation; ADE/FDE use its first
@@ -301,8 +304,19 @@ def motion_metrics(
         ``{"APD", "ADE", "FDE", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist"}``
         in cm (cm / frame for FS, cm / frame² for Jnt.Accel, % for Pen.Freq).
     """
-    x = _positions("samples", samples, batched=True)
-    out = {"APD": apd(x)}
+    t = torch.as_tensor(np.asarray(samples) if not isinstance(samples, Tensor) else samples)
+    if t.dim() == 5:
+        if reference is not None:
+            raise ValueError("reference needs samples from one initial state, (K, F, J, 3)")
+        x = _positions("samples", t.flatten(0, 1), batched=True)
+        out = {"APD": sum(apd(x_c) for x_c in x.unflatten(0, t.shape[:2])) / t.shape[0]}
+    elif t.dim() == 3:
+        if reference is not None:
+            raise ValueError("reference needs K samples, (K, F, J, 3)")
+        x, out = _positions("samples", t, batched=False), {}
+    else:
+        x = _positions("samples", t, batched=True)
+        out = {"APD": apd(x)}
     if reference is not None:
         ref = _positions("reference", reference, batched=False)
         n = min(ade_frames, ref.shape[0], x.shape[1])

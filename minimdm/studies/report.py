@@ -1,10 +1,7 @@
-"""Tables and figures of the acceleration chapter: fixed-width tables, the Squ-9 panels.
+"""Figures of the acceleration chapter: the Squ-9 panels.
 
-:func:`format_table` prints the rows of
-:meth:`minimdm.studies.squ9_acceleration.Squ9Study.evaluate`,
-:meth:`~minimdm.studies.squ9_acceleration.Squ9Study.ablation` or
-:func:`minimdm.aamdm.eval.motion_comparison`;
-:func:`plot_panels` draws AAMDM Figure 3 (one transition plot per method).
+:func:`plot_panels` draws AAMDM Figure 3 (one transition plot per method). The chapter's tables
+are printed by :func:`minimdm.utils.format_table`.
 """
 
 from __future__ import annotations
@@ -15,28 +12,7 @@ from torch import Tensor
 from minimdm.studies.squ9_acceleration import LABELS, PANELS
 from minimdm.toy.squ9 import Squ9, plot_transitions
 
-__all__ = ["format_table", "plot_panels"]
-
-
-def format_table(rows: list[dict], keys: tuple[str, ...] | None = None) -> str:
-    """A fixed-width text table of ``rows`` (the dicts of :meth:`Squ9Study.evaluate`)."""
-    keys = keys or tuple(k for k in rows[0] if k not in ("method",))
-    width = {k: max(len(k), *(len(_fmt(r.get(k))) for r in rows)) for k in keys}
-    head = "  ".join(k.rjust(width[k]) if k != "label" else k.ljust(width[k]) for k in keys)
-    lines = [head]
-    for r in rows:
-        cells = [
-            _fmt(r.get(k)).ljust(width[k]) if k == "label" else _fmt(r.get(k)).rjust(width[k])
-            for k in keys
-        ]
-        lines.append("  ".join(cells))
-    return "\n".join(lines)
-
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.3f}" if abs(v) < 100 else f"{v:.1f}"
-    return "-" if v is None else str(v)
+__all__ = ["plot_panels"]
 
 
 def plot_panels(

@@ -51,6 +51,7 @@ from minimdm.aamdm.train import (
     train_polisher,
 )
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser, train_regressor
@@ -389,11 +390,10 @@ class Squ9Study:
             _sync(self.device)
             sec = time.perf_counter() - t0
             q = squ9_metrics(self.x_eval.cpu(), x.cpu(), self.squ9)
-            chain = [start]
             with torch.no_grad():
-                for _ in range(rollout_steps):
-                    chain.append(m.sample(chain[-1], g, T_adm=T_adm))
-            ch = torch.stack(chain, 1).cpu()  # (chains, steps + 1, 2)
+                chain = autoregress(lambda f, x, m=m, g=g, a=T_adm: m.sample(x, g, T_adm=a),
+                                    start, rollout_steps, desc="squ9 rollout")  # fmt: skip
+            ch = torch.cat([start.cpu()[:, None], chain], 1)  # (chains, steps + 1, 2)
             qr = squ9_metrics(ch[:, :-1].reshape(-1, 2), ch[:, 1:].reshape(-1, 2), self.squ9)
             samples[(T_gan, T_adm)] = x.cpu()
             rows.append(
