@@ -7,6 +7,7 @@ import math
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
@@ -211,3 +212,98 @@ def test_shipped_autoencoder_round_trip_is_within_the_measured_bound():
     fk_cm = (fk_positions(y_hat, d["skeleton"]) - pos).norm(dim=-1).mean().item() * 100
     assert err_cm < 2.0, err_cm
     assert fk_cm < 1.0, fk_cm
+
+
+# ----------------------------------------------------------------------------------------------
+# The one rollout loop
+
+
+def _old_rollout_aamdm(model, init_y, init_x, n_frames, K, generator, direction, guide_scale):
+    """rollout_aamdm's loop as it was before the one loop (a reference copy for the test)."""
+    from minimdm.motion.skeleton import wrap_angle
+
+    C = init_y.shape[0]
+    heading = torch.zeros(C).repeat_interleave(K)
+    direction = torch.as_tensor(direction, dtype=torch.float32).expand(C).repeat_interleave(K)
+    xz = model.encode(init_y, init_x).repeat_interleave(K, dim=0)
+    feats, lat = [], []
+    for _ in range(n_frames):
+        guide = None
+        if guide_scale > 0:
+            guide = direction_guide(model, wrap_angle(direction - heading), guide_scale)
+        xz = model.transition.sample(xz, generator, guide=guide)
+        y = model.decode(xz)
+        heading = heading + y[:, 2]
+        feats.append(y.float())
+        lat.append(xz.float())
+    return torch.stack(feats, 1), torch.stack(lat, 1)
+
+
+@pytest.mark.parametrize("scale", [0.0, 1.0])
+def test_rollout_is_bit_identical_to_the_old_loop(scale):
+    m = tiny_motion()
+    y, x = torch.randn(2, 183) * 0.1, torch.randn(2, 12) * 0.1
+    r = rollout_aamdm(m, y, x, 5, 2, torch.Generator().manual_seed(0), direction=0.7,
+                      guide_scale=scale, decode_positions=False)  # fmt: skip
+    with torch.no_grad():
+        feats, lat = _old_rollout_aamdm(m, y, x, 5, 2, torch.Generator().manual_seed(0), 0.7,
+                                        scale)  # fmt: skip
+    assert torch.equal(r.features.flatten(0, 1), feats)
+    assert torch.equal(r.normalized.flatten(0, 1), lat)
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_rollout_names_the_frame_where_the_sampler_returns_nan(k):
+    m = tiny_motion()
+    sample, calls = m.transition.sample, []
+
+    def poisoned(*args, **kwargs):  # NaN in batch row 2 from the k-th frame on
+        xz = sample(*args, **kwargs)
+        calls.append(1)
+        if len(calls) >= k:
+            xz = xz.clone()
+            xz[2, 0] = float("nan")
+        return xz
+
+    m.transition.sample = poisoned
+    y, x = torch.zeros(2, 183), torch.zeros(2, 12)
+    with pytest.raises(NonFiniteFrameError, match=rf"frame {k} .*character 1, sample 0") as e:
+        rollout_aamdm(m, y, x, 5, 2)
+    assert e.value.frame == k
+
+
+def test_motion_quality_pools_motions_and_averages_apd_over_initial_states():
+    from minimdm.aamdm.eval import local_poses, motion_quality
+    from minimdm.amdm.sampling import Rollout
+    from minimdm.motion import metrics
+    from minimdm.motion.skeleton import Skeleton
+
+    sk = Skeleton(["root", "foot"], [-1, 0], np.array([[0.0, 0, 0], [0.0, 0, -0.5]]), ["foot"])
+    pos = torch.randn(2, 3, 6, 2, 3, generator=torch.Generator().manual_seed(0)) * 0.1
+    feats = torch.randn(2, 3, 6, 3 + 12 * 2, generator=torch.Generator().manual_seed(1))
+    q = motion_quality(Rollout(feats, pos, feats), sk, local_poses(feats, 2), 0.0)
+    ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    flat = pos.flatten(0, 1)
+    assert q["APD"] == pytest.approx((metrics.apd(pos[0]) + metrics.apd(pos[1])) / 2)
+    assert q["FS"] == metrics.foot_sliding(flat, sk.foot_indices)
+    assert q["Bone.Err"] == metrics.bone_length_error(flat, sk.parents, ref)
+    assert q["Jnt.Accel"] == metrics.joint_acceleration(flat)
+
+
+def test_study_fps_times_the_one_loop_and_motion_metrics_of_one_clip():
+    from minimdm.motion import metrics
+    from minimdm.studies.aamdm_motion import frames_per_second
+
+    calls = []
+
+    def step(f, x):
+        calls.append(f)
+        return x + 1
+
+    assert frames_per_second(step, torch.zeros(1, 2), n_frames=7, warmup=3) > 0
+    assert calls == [1, 2, 3] + list(range(1, 8)) * 2  # warm-up, then two timed passes
+    clip = torch.randn(8, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    m = metrics.motion_metrics(clip, [-1, 0], [1], [0.5])
+    assert "APD" not in m and m["FS"] == metrics.foot_sliding(clip, [1])
+    with pytest.raises(ValueError, match="reference needs"):
+        metrics.motion_metrics(clip[None, None], [-1, 0], [1], [0.5], reference=clip)

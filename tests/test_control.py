@@ -422,3 +422,141 @@ def test_inbetweening_lands_on_the_keyframe(walker):
     # measured over seeds 0-5: 1.8-2.2 cm (mean of 8 samples), 45 cm for random sampling
     assert err < 4.0, err
     assert err_free > 3 * err
+
+
+# ------------------------------------------------------------------ the one rollout loop
+
+
+def _old_beam(cm, x0, score_fn, n_frames, P, H, generator, commit, stop_fn):
+    """Beam search's loops as they were before the one loop (a reference copy for the test):
+    -> normalized frames (B, F, D) before holding, best scores (B, F), done_at (B,)."""
+    from minimdm.control.beam import Future
+
+    B, D = x0.shape
+    xy, heading = torch.zeros(B, 2, dtype=torch.float64), torch.zeros(B, dtype=torch.float64)
+    cond = cm.normalize(x0)
+    out = torch.full((B, n_frames, D), float("nan"))
+    best_scores = torch.full((B, n_frames), float("nan"))
+    done_at = torch.full((B,), -1, dtype=torch.long)
+    active, f = torch.arange(B), 0
+    while f < n_frames and active.numel() > 0:
+        b = active.numel()
+        c = cond[active].repeat_interleave(P, dim=0)
+        cand = torch.empty(b * P, H, D, dtype=c.dtype, device=c.device)
+        for h in range(H):
+            c = C.sample_frame(cm, c, generator, frame=f + 1 + h)
+            cand[:, h] = c
+        cand = cand.reshape(b, P, H, D)
+        future = Future(cm.denormalize(cand).float(), xy[active], heading[active], active, f)
+        scores = torch.as_tensor(score_fn(future)).to("cpu", torch.float64)
+        best = scores.argmax(dim=1)
+        plan = cand[torch.arange(b), best]
+        plan_feats = future.features[torch.arange(b), best]
+        best_score = scores[torch.arange(b), best].float()
+        going = torch.arange(b)
+        for j in range(min(commit, n_frames - f)):
+            rows = active[going]
+            out[rows, f + j] = plan[going, j].float()
+            cond[rows] = plan[going, j]
+            best_scores[rows, f + j] = best_score[going]
+            step = Future(plan_feats[going, j][:, None, None], xy[rows], heading[rows], rows, f + j)
+            xy[rows], heading[rows] = step.root_xy[:, 0, 0], step.heading[:, 0, 0]
+            if stop_fn is not None:
+                stop = torch.as_tensor(stop_fn(step), dtype=torch.bool).reshape(-1)
+                done_at[rows[stop]] = f + j + 1
+                going = going[~stop]
+        f += min(commit, n_frames - f)
+        active = active[done_at[active] < 0]
+    return out, best_scores, done_at
+
+
+@pytest.mark.parametrize("H,commit", [(1, 1), (3, 2)])
+def test_beam_search_is_bit_identical_to_the_old_loops(tmp_path, H, commit):
+    cm = C.as_control_model(tiny_ckpt(tmp_path))
+
+    def score(future):
+        return future.features[..., 0].sum(-1)
+
+    def stop(now):  # character 0 completes its task after its 3rd frame, the others never
+        return (now.index == 0) & torch.tensor(now.frame >= 2)
+
+    x0 = start_state(3)
+    m = C.beam_search(cm, x0, score, 7, pool=4, horizon=H, commit=commit, stop_fn=stop,
+                      generator=torch.Generator().manual_seed(3))  # fmt: skip
+    out, scores, done_at = _old_beam(cm, x0, score, 7, 4, H, torch.Generator().manual_seed(3),
+                                     commit, stop)  # fmt: skip
+    assert done_at.tolist() == m.info["done_at"].tolist() and done_at[0] >= 3
+    assert torch.equal(m.normalized[1:], out[1:])  # characters that kept searching
+    k = int(done_at[0])
+    assert torch.equal(m.normalized[0, :k], out[0, :k])  # and the first until it was done
+    torch.testing.assert_close(m.info["score"], scores.float(), rtol=0, atol=0, equal_nan=True)
+    # when every character is done the search stops: one character, the motion ends there
+    m1 = C.beam_search(cm, x0[0], score, 7, pool=4, horizon=H, commit=commit, stop_fn=stop,
+                       generator=torch.Generator().manual_seed(3))  # fmt: skip
+    assert m1.n_frames == m1.info["done_at"] == k
+
+
+def test_inpaint_and_inbetween_are_bit_identical_to_the_old_loops(tmp_path):
+    cm = C.as_control_model(tiny_ckpt(tmp_path))
+    x0 = start_state(2)
+    tgt = torch.randn(5, D, generator=torch.Generator().manual_seed(2))
+    mask = torch.zeros(D, dtype=torch.bool)
+    mask[:3] = True
+    m = C.inpaint(cm, x0, tgt, mask, torch.Generator().manual_seed(1), t_stop=1)
+    g = torch.Generator().manual_seed(1)  # the old loop, a reference copy
+    tgt_n, cond, old = cm.normalize(tgt.expand(2, 5, D)), cm.normalize(x0), []
+    for f in range(5):
+        hook = C.inpaint_hook(cm.schedule, tgt_n[:, f], mask.expand(2, D), g, 1)
+        cond = C.sample_frame(cm, cond, g, hook=hook, frame=f + 1)
+        old.append(cond)
+    assert torch.equal(m.normalized, torch.stack(old, 1))
+
+    keys = torch.randn(2, D, generator=torch.Generator().manual_seed(5)) * 0.1
+    m = C.inbetween(cm, x0, keys, 6, torch.Generator().manual_seed(1), at=[2, 4])
+    g = torch.Generator().manual_seed(1)
+    keys_n, cond, old, k, prev = cm.normalize(keys), cm.normalize(x0), [], 0, 0
+    ats, T = [2, 4], cm.schedule.T
+    for f in range(1, 7):
+        if k < 2:
+            t0 = C.inbetween_t_start(f - prev, ats[k] - prev, T)
+            x_start = q_sample(cm.schedule, keys_n[k].expand(2, D), t0, generator=g)
+            cond = C.sample_frame(cm, cond, g, t_start=t0, x_start=x_start, frame=f)
+            if f == ats[k]:
+                k, prev = k + 1, f
+        else:
+            cond = C.sample_frame(cm, cond, g, frame=f)
+        old.append(cond)
+    assert torch.equal(m.normalized, torch.stack(old, 1))
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_every_technique_names_the_frame_where_the_model_returns_nan(tmp_path, monkeypatch, k):
+    from minimdm.amdm.sampling import NonFiniteFrameError, next_frame
+    from minimdm.control import core
+
+    calls = []
+
+    def poisoned(*args, **kwargs):  # NaN in batch row 1 from the k-th frame on
+        x = next_frame(*args, **kwargs)
+        calls.append(1)
+        if len(calls) >= k:
+            x = x.clone()
+            x[1, 0] = float("nan")
+        return x
+
+    monkeypatch.setattr(core, "next_frame", poisoned)
+    ck, x0 = tiny_ckpt(tmp_path), start_state(2)
+    runs = {
+        r"beam search .*frame {k} .*character 0, candidate 1": lambda: C.beam_search(
+            ck, x0, lambda fut: fut.features[..., 0].sum(-1), 5, pool=3
+        ),
+        r"inpaint .*frame {k} .*character 1": lambda: C.inpaint(
+            ck, x0, torch.zeros(5, D), torch.zeros(D)
+        ),
+        r"inbetween .*frame {k} .*character 1": lambda: C.inbetween(ck, x0, x0[0], 5),
+    }
+    for pattern, run in runs.items():
+        calls.clear()
+        with pytest.raises(NonFiniteFrameError, match=pattern.format(k=k)) as e:
+            run()
+        assert e.value.frame == k

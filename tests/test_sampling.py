@@ -3,8 +3,15 @@
 import pytest
 import torch
 
+from minimdm.amdm import sampling
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.amdm.sampling import NonFiniteFrameError, rollout
+from minimdm.amdm.sampling import (
+    NonFiniteFrameError,
+    autoregress,
+    next_frame,
+    rollout,
+    sampler_settings,
+)
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.motion.features import Normalizer, StartPose, decode
 
@@ -110,3 +117,103 @@ def test_bad_input_is_named(amdm_ckpt):
         rollout(ck, init_states(), 0)
     with pytest.raises(ValueError, match="steps must lie in"):
         rollout(ck, init_states(), 2, steps=10)
+
+
+# ------------------------------------------------------------------ the one rollout loop
+
+
+def _old_sample_frames(model, x0, n_frames, K, normalizer, generator, schedule, steps, eta,
+                       predicts, clip_x0):  # fmt: skip
+    """The rollout loop as it was before the one loop (a reference copy, kept for the test)."""
+    C = x0.shape[0]
+    cond = normalizer.normalize(x0) if normalizer is not None else x0
+    cond = cond.repeat_interleave(K, dim=0)
+    out = torch.empty(C * K, n_frames, cond.shape[1], dtype=torch.float32)
+    for f in range(n_frames):
+        x = next_frame(model, cond, generator, schedule, steps, eta, predicts, clip_x0)
+        out[:, f] = x.float().cpu()
+        cond = x
+    return out.reshape(C, K, n_frames, -1)
+
+
+@pytest.mark.parametrize("steps", [None, 3])
+def test_rollout_is_bit_identical_to_the_old_loop(amdm_ckpt, steps):
+    ck, norm = amdm_ckpt
+    r = rollout(ck, init_states(), 6, 3, steps, torch.Generator().manual_seed(4), clip_x0=2.0)
+    old = _old_sample_frames(ck.model, init_states(), 6, 3, norm,
+                             torch.Generator().manual_seed(4), ck.schedule(), steps, 1.0, "eps",
+                             2.0)  # fmt: skip
+    assert torch.equal(r.normalized, old)
+    mvae = MVAE(MVAEConfig(D, D, latent_dim=4, width=16, depth=3))
+    r = rollout(mvae, init_states(), 4, 2, generator=torch.Generator().manual_seed(0))
+    old = _old_sample_frames(mvae, init_states(), 4, 2, None, torch.Generator().manual_seed(0),
+                             None, None, 1.0, "eps", None)  # fmt: skip
+    assert torch.equal(r.normalized, old)
+
+
+def test_autoregress_feeds_each_frame_back_and_names_frame_and_row():
+    seen = []
+
+    def step(f, x):
+        seen.append((f, x.clone()))
+        return x + f
+
+    out = autoregress(step, torch.zeros(2, 3), 4, first=3)
+    assert [f for f, _ in seen] == [3, 4, 5, 6]
+    assert torch.equal(out[:, :, 0], torch.tensor([[3.0, 7, 12, 18]] * 2))
+    assert torch.equal(seen[2][1], out[:, 1])  # the previous frame is the next condition
+    # stop ends the loop early; the result holds the frames made
+    assert autoregress(step, torch.zeros(2, 3), 5, stop=lambda f: f == 2).shape == (2, 2, 3)
+
+    def bad(f, x):
+        y = x + 1
+        if f == 4:
+            y[2, 1] = float("inf")
+        return y
+
+    with pytest.raises(NonFiniteFrameError, match=r"frame 4 .*for batch row 2") as e:
+        autoregress(bad, torch.zeros(3, 2), 6)
+    assert (e.value.frame, e.value.row) == (4, 2)
+    with pytest.raises(NonFiniteFrameError, match=r"demo produced .* frame 4 .*for row #2"):
+        autoregress(bad, torch.zeros(3, 2), 6, who=lambda b: f"row #{b}", desc="demo")
+    with pytest.raises(ValueError, match="n_frames must be an integer >= 1"):
+        autoregress(bad, torch.zeros(3, 2), 0)
+
+
+def poison_next_frame(monkeypatch, module, k: int, row: int):
+    """Make ``module.next_frame`` return NaN in ``row`` from its k-th call on (frame k)."""
+    calls = []
+
+    def wrapped(*args, **kwargs):
+        x = next_frame(*args, **kwargs)
+        calls.append(1)
+        if len(calls) >= k:
+            x = x.clone()
+            x[row, 0] = float("nan")
+        return x
+
+    monkeypatch.setattr(module, "next_frame", wrapped)
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_rollout_names_the_frame_where_the_model_returns_nan(amdm_ckpt, monkeypatch, k):
+    ck, _ = amdm_ckpt
+    poison_next_frame(monkeypatch, sampling, k, row=3)  # C K = 2 x 2: row 3 = character 1, 1
+    with pytest.raises(NonFiniteFrameError, match=rf"frame {k} .*character 1, sample 1") as e:
+        rollout(ck, init_states(), 6, 2, generator=torch.Generator().manual_seed(0))
+    assert e.value.frame == k
+
+
+def test_sampler_settings_pass_clip_x0_through_unchanged(tmp_path):
+    torch.manual_seed(0)
+    model = MLPDenoiser(DenoiserConfig(D, D, width=16, depth=2, time_dim=8, predicts="x0"))
+    clip = [[-1.0] * D, [2.0] * D]  # a per-feature range: interpreted by diffusion, not here
+    meta = {"diffusion": {"schedule": "cosine", "T": 4, "clip_x0": clip}}
+    save_checkpoint(tmp_path / "m", model, meta)
+    s = sampler_settings(load_checkpoint(tmp_path / "m"))
+    assert s.clip_x0 == clip and s.predicts == "x0"  # predicts: from the network when unsaid
+    assert s.schedule.T == 4 and s.normalizer is None and s.layout is None
+    from minimdm.control import as_control_model
+
+    cm = as_control_model(load_checkpoint(tmp_path / "m"))
+    assert cm.clip_x0 == clip and cm.predicts == "x0"
