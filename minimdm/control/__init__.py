@@ -1,7 +1,8 @@
 """Control without retraining (A-MDM §4.2-4.3): task-oriented sampling, inpainting, inbetweening.
 
-Each technique drives the one sampler of :mod:`minimdm.diffusion` frame after frame, through
-:func:`minimdm.amdm.sampling.next_frame`; none copies the denoising loop:
+Each technique drives the one sampler of :mod:`minimdm.diffusion` (through
+:func:`minimdm.amdm.sampling.next_frame`) frame after frame on the one rollout loop,
+:func:`minimdm.amdm.sampling.autoregress`; none copies either loop:
 
 * :func:`beam_search` samples a pool of candidate futures per frame and keeps the first frame of
   the best under a score function (:mod:`~minimdm.control.scores`);
