@@ -31,6 +31,7 @@ from minimdm.aamdm.motion import (
 )
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
+from minimdm.diffusion import data_range
 
 __all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
 
@@ -99,8 +100,9 @@ class AAMDMTrainConfig:
     """Discriminator learning rate."""
     r1_gamma: float = 0.3
     """R1 penalty weight."""
-    clip_x0: float | None = 6.0
-    """Clamp x0 estimates (standardised units) while sampling."""
+    clip_x0: float | str | None = "data"
+    """Clamp x0 estimates while sampling: 'data' (the per-feature range of the standardised xz
+    training data), a float c ([-c, c], standardised units) or None."""
     seed: int = 0
     """Seeds everything."""
     config_file: str | None = None
@@ -168,7 +170,7 @@ def train_aamdm_motion(
     xz_dim = X_DIM + c.z_dim
     tcfg = AAMDMConfig(
         xz_dim, xz_dim, c.T_gan, c.T_adm, latent_dim=c.latent_dim, width=c.width,
-        depth=c.depth, fourier=c.fourier, clip_x0=c.clip_x0,
+        depth=c.depth, fourier=c.fourier, clip_x0=None if c.clip_x0 == "data" else c.clip_x0,
     )  # fmt: skip
     mcfg = MotionModelConfig(
         norm.dim, X_DIM, c.z_dim, c.ae_width, c.ae_depth, list(c.horizons), asdict(tcfg)
@@ -211,6 +213,10 @@ def train_aamdm_motion(
     model.xz_mean.copy_(cat.mean(0))
     model.xz_std.copy_(cat.std(0).clamp_min(1e-3))
     xz = [(a - model.xz_mean) / model.xz_std for a in xz_raw]
+    if c.clip_x0 == "data":  # the sampler's clamp: the range of the standardised training xz
+        lo, hi = data_range(xz)
+        model.transition.config.clip_x0 = [lo.tolist(), hi.tolist()]
+        model.config.transition["clip_x0"] = model.transition.config.clip_x0
     windows = make_windows(xz, c.window)  # (W, h + 1, X + Z)
     report["windows"] = int(windows.shape[0])
 
