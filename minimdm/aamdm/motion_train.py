@@ -33,7 +33,13 @@ from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_poli
 from minimdm.checkpoint import save_checkpoint
 from minimdm.diffusion import data_range
 
-__all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
+__all__ = [
+    "AAMDMTrainConfig",
+    "load_train_config",
+    "load_motion_data",
+    "train_aamdm_motion",
+    "checkpoint_training_xz",
+]
 
 
 @dataclass
@@ -266,6 +272,20 @@ def train_aamdm_motion(
         meta.update(step=c.gan_steps, report=report)
         save_checkpoint(out_dir, model, meta)
     return model, report
+
+
+@torch.no_grad()
+def checkpoint_training_xz(ckpt: Any) -> Tensor:
+    """The standardised xz (N, X + Z) a motion AAMDM checkpoint was trained on, rebuilt.
+
+    The clips are loaded as its config loaded them and embedded with the checkpoint's own
+    autoencoder and statistics, clip by clip, as in training: the frames its x0 clamp must cover.
+    """
+    cfg = dict(ckpt.config)
+    cfg["clips"] = (ckpt.metadata.get("data") or {}).get("clips") or cfg.get("clips")
+    d = load_motion_data(AAMDMTrainConfig(**cfg))
+    model = ckpt.model
+    return torch.cat([model.encode(y, x) for y, x in zip(d["y"], d["x"], strict=True)])
 
 
 def _round(d: dict, keys: tuple[str, ...] | None = None) -> dict:
