@@ -36,8 +36,8 @@ prediction is the noise ``eps`` (A-MDM eq. 3) or the clean sample ``x0``, as nam
   to the training data's per-feature range (:func:`clip_bounds`, :func:`data_range`);
 * *hooks on* :math:`x_t`, ``hook(t, x_t, x0_hat) -> x_t``, run after each step, where ``x_t`` is
   the new sample at level ``t`` (``t = -1``: the final clean sample) and ``x0_hat`` the estimate
-  that step used: inpainting (A-MDM eq. 4, :mod:`minimdm.control.hooks`) and RL residuals
-  (A-MDM eq. 7).
+  that step used: inpainting (A-MDM eq. 4, :mod:`minimdm.control.hooks`); the RL residuals
+  of A-MDM eq. 7 take the same form.
 
 :func:`ddpm_sample`, :func:`ddim_sample`, :func:`p_sample` and
 :func:`minimdm.aamdm.model.aamdm_sample` are thin calls of the chain.
