@@ -45,6 +45,7 @@ __all__ = [
     "save_checkpoint",
     "load_checkpoint",
     "load_train_state",
+    "update_metadata",
     "model_spec",
     "build_model",
     "register_model_kind",
@@ -430,3 +431,28 @@ def load_train_state(path: str | os.PathLike) -> tuple[dict, dict]:
         raise ValueError(f"{paths.train} is not a minimdm training state")
     tensors = st_load(paths.train.read_bytes())
     return json.loads(header[_META_KEY]), _unpack(json.loads(header["train_state"]), tensors)
+
+
+def update_metadata(
+    path: str | os.PathLike, edit: Callable[[dict], dict | None]
+) -> CheckpointPaths:
+    """Rewrite a checkpoint's metadata in place; the weights stay bit for bit the same.
+
+    ``edit(metadata)`` changes the metadata dict (or returns a new one). The network is rebuilt
+    from the edited ``model`` spec and loaded with the stored weights before anything is written,
+    so an edit that no longer fits the weights raises and leaves the files as they were. Then
+    the weights file (tensors plus new header) and the JSON beside it are written atomically,
+    the weights file first. A training state (``STEM.train.safetensors``) is left untouched.
+    """
+    paths = checkpoint_paths(path)
+    if not paths.weights.exists():
+        raise FileNotFoundError(f"no checkpoint at {path}: expected the file {paths.weights}")
+    meta = _read_header_meta(paths.weights)
+    tensors = st_load(paths.weights.read_bytes())
+    edited = edit(meta)
+    meta = _jsonable(meta if edited is None else edited)
+    build_model(meta["model"]).load_state_dict(tensors, strict=True)  # still fits the weights
+    text = _dumps(meta)
+    _atomic_write(paths.weights, st_save(tensors, metadata={_META_KEY: text}))
+    _atomic_write(paths.meta, (text + "\n").encode())
+    return paths

@@ -39,7 +39,7 @@ from minimdm.aamdm.train import (
 )
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
-from minimdm.diffusion import q_sample
+from minimdm.diffusion import DDGANStep, Handover, PolishStep, q_sample, reverse_chain
 from minimdm.toy.squ9 import Squ9, squ9_metrics
 
 
@@ -410,3 +410,55 @@ def test_generator_uses_its_latent():
     x, c, t = torch.zeros(2, 2), torch.zeros(2, 2), torch.zeros(2, dtype=torch.long)
     out = g(x, t, c, torch.randn(2, 4, generator=torch.Generator().manual_seed(0)))
     assert (out[0] - out[1]).abs().max() > 1e-3
+
+
+# ----------------------------------------------------------------------------------------------
+# The sampler is the library's reverse chain with DD-GAN and polishing step rules
+
+
+def test_sampler_is_the_reverse_chain_with_a_handover():
+    m = tiny_aamdm()
+    s, cond = m.schedule(), torch.randn(4, 2)
+    rule = Handover(
+        DDGANStep(m.generator, s, m.config.latent_dim, t_offset=2), PolishStep(m.polisher, s), 2
+    )
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    x = torch.randn(4, 2, generator=g1)
+    direct = reverse_chain(rule, x, range(4, -1, -1), cond, g1)
+    assert torch.equal(aamdm_sample(m.generator, m.polisher, s, (4, 2), cond, generator=g2), direct)
+
+
+def test_guidance_runs_before_the_per_feature_clamp():
+    """Guidance (an x0 hook) pulls towards a far target; the clamp (the next x0 hook) still
+    bounds every estimate, and the final sample, to the per-feature range."""
+    gan, pol = ShiftNet(latent_dim=2), ShiftNet()
+    s = aamdm_schedule(3, 2)
+    lo, hi = torch.tensor([-0.5, -2.0]), torch.tensor([0.25, 1.0])
+    seen = []
+    out = aamdm_sample(
+        gan, pol, s, (32, 2), torch.zeros(32, 2), generator=torch.Generator().manual_seed(0),
+        hook=lambda t, x, x0: seen.append(x0) or x, clip_x0=(lo, hi),
+        guide=Guide(lambda x0: ((x0 - torch.tensor([5.0, 5.0])) ** 2).sum(-1), scale=2.0),
+    )  # fmt: skip
+    for x0 in seen:
+        assert (x0 >= lo).all() and (x0 <= hi).all()
+    assert torch.equal(out, seen[-1])
+    assert (out == hi).float().mean() > 0.5  # the guide pushed most estimates to the upper bound
+
+
+def test_config_clamp_is_checked_and_survives_a_checkpoint(tmp_path):
+    with pytest.raises(ValueError, match=r"clip_x0 must be a pair \(lo, hi\) of 2 values"):
+        AAMDMConfig(2, 2, 3, 2, clip_x0=[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    with pytest.raises(ValueError, match="clip_x0 must have lo <= hi"):
+        AAMDMConfig(2, 2, 3, 2, clip_x0=[[0.0, 2.0], [1.0, 1.0]])
+    cfg = AAMDMConfig(2, 2, 3, 2, latent_dim=3, width=16, depth=2, time_dim=8,
+                      clip_x0=(torch.tensor([-0.1, -0.2]), torch.tensor([0.1, 0.3])))  # fmt: skip
+    assert cfg.clip_x0 == [[pytest.approx(-0.1), pytest.approx(-0.2)],
+                           [pytest.approx(0.1), pytest.approx(0.3)]]  # fmt: skip
+    torch.manual_seed(0)
+    m = AAMDM(cfg).eval()
+    save_checkpoint(tmp_path / "ddgan", m, {"step": 0})
+    ck = load_checkpoint(tmp_path / "ddgan")
+    assert ck.model.config.clip_x0 == cfg.clip_x0
+    out = ck.model.sample(torch.randn(64, 2), torch.Generator().manual_seed(1))
+    assert (out >= torch.tensor([-0.1, -0.2])).all() and (out <= torch.tensor([0.1, 0.3])).all()

@@ -1,4 +1,5 @@
-"""Tests for minimdm.diffusion: schedules, forward process, posterior, samplers, hooks, errors.
+"""Tests for minimdm.diffusion: schedules, forward process, posterior, the reverse chain with its
+step rules and hooks, the x0 clamp, errors.
 
 The closed forms are re-derived here independently of the library (Bayes' rule for the
 posterior, a Gaussian data distribution whose optimal denoiser is known in closed form), so
@@ -16,16 +17,28 @@ from hypothesis import strategies as st
 
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.diffusion import (
+    DDGANStep,
+    DDIMStep,
+    DDPMStep,
+    Handover,
     NoiseSchedule,
+    PolishStep,
+    StepCount,
+    clamp_share,
+    clamp_x0,
+    clip_bounds,
+    data_range,
     ddim_sample,
     ddim_timesteps,
     ddpm_sample,
     diffusion_loss,
+    p_mean_variance,
     p_sample,
     predict_eps_from_x0,
     predict_x0_from_eps,
     q_posterior,
     q_sample,
+    reverse_chain,
 )
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser
 
@@ -401,6 +414,215 @@ def test_bad_input_raises():
         ddim_sample(model, s, (4, 2), cond=torch.zeros(4, 2), eta=-1)
     with pytest.raises(ValueError, match="t must"):
         q_sample(s, torch.zeros(4, 2), 5)
+
+
+# ----------------------------------------------------------------------------------------------
+# The reverse chain: step rules and the two kinds of hooks
+
+
+class ConstNet(torch.nn.Module):
+    """Predicts a constant clean sample c and records the levels it is called at."""
+
+    def __init__(self, c: float = 0.3):
+        super().__init__()
+        self.c, self.levels = c, []
+
+    def forward(self, x_t, t, cond):
+        self.levels.append(int(t[0]))
+        return torch.full_like(x_t, self.c)
+
+
+def test_chain_runs_each_level_once_and_rejects_bad_levels():
+    s = NoiseSchedule("cosine", 10)
+    net = ConstNet()
+    x = torch.randn(3, 2)
+    out = reverse_chain(DDIMStep(net, s, "x0", eta=0.0), x, [9, 5, 2])
+    assert net.levels == [9, 5, 2]
+    # eta = 0 and a constant x0 estimate: the last step lands exactly on it
+    assert torch.equal(out, torch.full((3, 2), 0.3))
+    for bad in ([], [3, 5], [4, 4], [2, -1]):
+        with pytest.raises(ValueError, match="levels"):
+            reverse_chain(DDIMStep(net, s, "x0"), x, bad)
+    with pytest.raises(ValueError, match="DDPM step goes one level down"):
+        reverse_chain(DDPMStep(net, s, "x0"), x, [5, 2])
+
+
+def test_x0_hooks_run_before_the_step_and_x_t_hooks_after():
+    s = NoiseSchedule("linear", 6)
+    events = []
+
+    def x0_hook(t, x_t, x0_hat):
+        events.append(("x0", t))
+        return torch.full_like(x0_hat, -1.0)  # the step must use this estimate
+
+    def x_hook(t, x_t, x0_hat):
+        events.append(("x", t))
+        assert (x0_hat == -1.0).all()  # x_t hooks see the estimate the step used
+        return x_t
+
+    out = reverse_chain(
+        DDIMStep(tiny_model(), s, "eps", eta=0.0), torch.randn(4, 2), [5, 3, 0],
+        torch.zeros(4, 2), hooks=[x_hook], x0_hooks=[x0_hook],
+    )  # fmt: skip
+    assert events == [("x0", 5), ("x", 3), ("x0", 3), ("x", 0), ("x0", 0), ("x", -1)]
+    torch.testing.assert_close(out, torch.full((4, 2), -1.0))
+
+
+def test_x0_hook_with_needs_grad_can_differentiate_through_the_network():
+    """A guidance-like hook gets an x_t that requires grad; d x0_hat / d x_t is the network's."""
+    s = NoiseSchedule("cosine", 4)
+    net = tiny_model()
+    grads = []
+
+    def hook(t, x_t, x0_hat):
+        assert x_t.requires_grad
+        (g,) = torch.autograd.grad(x0_hat.sum(), x_t)
+        grads.append(g)
+        return x0_hat.detach()
+
+    hook.needs_grad = True
+    x, cond = torch.randn(3, 2), torch.zeros(3, 2)
+    reverse_chain(DDPMStep(net, s, "eps"), x, [3, 2, 1, 0], cond, x0_hooks=[hook])
+    assert len(grads) == 4 and all(torch.isfinite(g).all() for g in grads)
+    # at the first level the gradient is the network's own (computed here independently)
+    xg = x.clone().requires_grad_(True)
+    x0 = predict_x0_from_eps(s, xg, 3, net(xg, torch.full((3,), 3), cond))
+    (ref,) = torch.autograd.grad(x0.sum(), xg)
+    torch.testing.assert_close(grads[0], ref)
+
+
+def test_chain_counts_its_steps_by_rule():
+    s = NoiseSchedule("cosine", 6)
+    count = StepCount()
+    x = torch.randn(2, 2)
+    polish = PolishStep(ConstNet(0.1), s)
+    gan = DDGANStep(lambda x_t, k, cond, r: x_t * 0 + r[:, :2], s, latent_dim=2, t_offset=2)
+    out = reverse_chain(Handover(gan, polish, 2), x, range(5, -1, -1), count=count)
+    assert count.levels == [5, 4, 3, 2, 1, 0]
+    assert count.modules == ["gan"] * 4 + ["adm"] * 2
+    assert (count.gan_steps, count.adm_steps, count.network_calls) == (4, 2, 6)
+    assert torch.equal(out, torch.full((2, 2), 0.1))  # the last polishing step returns x0_hat
+
+
+@pytest.mark.parametrize("steps,t_start", [(5, 12), (5, 19), (20, 7), (3, 0)])
+def test_ddim_t_start_follows_the_grid_below_it(steps, t_start):
+    T = 20
+    ts = ddim_timesteps(T, steps, t_start)
+    grid = ddim_timesteps(T, steps)
+    assert ts[0] == t_start and ts[1:] == [t for t in grid if t < t_start]
+    net = ConstNet()
+    seen = []
+    x_start = torch.randn(2, 2)
+    s = NoiseSchedule("cosine", T)
+    out = ddim_sample(net, s, (2, 2), steps=steps, predicts="x0", t_start=t_start,
+                      x_start=x_start, hook=lambda t, x, x0: seen.append(t) or x)  # fmt: skip
+    assert net.levels == ts and seen == ts[1:] + [-1]
+    assert torch.equal(out, torch.full((2, 2), 0.3))
+    # starting at T - 1 is the plain chain
+    g1, g2 = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+    a = ddim_sample(tiny_model(), s, (2, 2), torch.zeros(2, 2), steps, 1.0, g1, t_start=T - 1)
+    b = ddim_sample(tiny_model(), s, (2, 2), torch.zeros(2, 2), steps, 1.0, g2)
+    assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="t_start"):
+        ddim_sample(net, s, (2, 2), steps=steps, t_start=T)
+
+
+def test_next_frame_passes_t_start_to_ddim():
+    from minimdm.amdm.sampling import next_frame
+
+    torch.manual_seed(0)
+    model = MLPDenoiser(DenoiserConfig(2, 2, width=16, depth=2, time_dim=8, predicts="x0"))
+    levels = []
+    model.register_forward_pre_hook(lambda m, args: levels.append(int(args[1][0])))
+    s = NoiseSchedule("cosine", 20)
+    next_frame(model, torch.zeros(3, 2), None, s, steps=5, eta=0.0, predicts="x0",
+               t_start=9, x_start=torch.randn(3, 2))  # fmt: skip
+    assert levels == ddim_timesteps(20, 5, 9) and levels[0] == 9
+
+
+# ----------------------------------------------------------------------------------------------
+# The x0 clamp: None, a float, or a per-feature range
+
+
+finite = st.floats(-50, 50, allow_nan=False)  # float64: data_range must round outwards
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(1, 5).flatmap(
+        lambda d: st.lists(st.lists(finite, min_size=d, max_size=d), min_size=1, max_size=30)
+    ),
+    st.sampled_from([torch.float32, torch.float64]),
+)
+def test_data_range_covers_its_frames(rows, dtype):
+    frames = torch.tensor(rows, dtype=dtype)
+    lo, hi = data_range(frames)
+    assert lo.dtype == hi.dtype == torch.float32 and (lo <= hi).all()
+    assert clamp_share((lo, hi), frames) == 0.0
+    assert torch.equal(clamp_x0(frames.float(), clip_bounds((lo, hi), frames.shape[1])),
+                       frames.float())  # fmt: skip
+    # a box that excludes one extreme value excludes its frame
+    if (hi > lo).any():
+        j = int((hi > lo).nonzero()[0])
+        hi2 = hi.clone()
+        hi2[j] = torch.nextafter(hi[j], torch.tensor(-math.inf))
+        n_out = (frames[:, j].double() > hi2[j].double()).sum().item()
+        assert n_out >= 1 and clamp_share((lo, hi2), frames) >= n_out / len(frames)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(finite, min_size=6, max_size=6), st.floats(0.1, 10))
+def test_clamp_forms_agree_and_bound_the_estimate(vals, c):
+    x = torch.tensor(vals).reshape(2, 3)
+    sym = clamp_x0(x, clip_bounds(c, 3))
+    pair = clamp_x0(x, clip_bounds([[-c] * 3, [c] * 3], 3))
+    assert torch.equal(sym, pair) and (sym.abs() <= torch.tensor(c, dtype=torch.float32)).all()
+    assert torch.equal(clamp_x0(sym, clip_bounds(c, 3)), sym)  # idempotent
+    assert clip_bounds(None, 3) is None and torch.equal(clamp_x0(x, None), x)
+
+
+def test_clamp_share_counts_frames_with_any_feature_outside():
+    frames = torch.tensor([[0.0, 0.0], [0.0, 6.0], [-7.0, 0.0], [4.9, -4.9]])
+    assert clamp_share(5.0, frames) == 0.5
+    assert clamp_share([[-8.0, -1.0], [1.0, 7.0]], frames) == 0.25  # [4.9, -4.9] only
+    assert clamp_share(None, frames) == 0.0
+
+
+def test_samplers_take_the_checkpoint_form_of_the_range():
+    """Nested lists (the JSON of a checkpoint) clamp per feature in every sampler."""
+    s = NoiseSchedule("cosine", 5)
+    net = ConstNet(3.0)
+    bounds = [[-1.0, -2.0], [0.5, 2.5]]
+    for out in (
+        ddpm_sample(net, s, (4, 2), predicts="x0", clip_x0=bounds),
+        ddim_sample(net, s, (4, 2), steps=3, predicts="x0", clip_x0=bounds),
+    ):
+        torch.testing.assert_close(out, torch.tensor([[0.5, 2.5]] * 4))
+    _, _, x0 = p_mean_variance(net, s, torch.zeros(4, 2), 2, None, "x0", bounds)
+    assert x0.tolist() == [[0.5, 2.5]] * 4
+
+
+@pytest.mark.parametrize(
+    "bad,match",
+    [
+        ([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], r"clip_x0 must be a pair \(lo, hi\) of 2 values"),
+        ([[0.0], [1.0]], r"clip_x0 must be a pair \(lo, hi\) of 2 values"),
+        ([[0.0, 2.0], [1.0, 1.0]], r"clip_x0 must have lo <= hi, but feature 1"),
+        ([[0.0, float("nan")], [1.0, 1.0]], "clip_x0 must hold finite bounds"),
+        ([[0.0, 0.0], [1.0, float("inf")]], "clip_x0 must hold finite bounds"),
+        ([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]], "clip_x0 must be None, a float"),
+        (-1.0, "clip_x0 must be a finite float > 0"),
+        (float("nan"), "clip_x0 must be a finite float > 0"),
+        ("data", "clip_x0 must be None.*'data' is resolved by training"),
+    ],
+)
+def test_bad_clamp_raises_naming_clip_x0(bad, match):
+    s = NoiseSchedule("cosine", 5)
+    with pytest.raises(ValueError, match=match):
+        clip_bounds(bad, 2)
+    for sampler in (ddpm_sample, ddim_sample):
+        with pytest.raises(ValueError, match="clip_x0"):
+            sampler(tiny_model(), s, (3, 2), torch.zeros(3, 2), clip_x0=bad)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -18,9 +18,12 @@ Levels use the library's 0-based index (:mod:`minimdm.diffusion`): ``t = T-1`` i
 ``[3.764e-4, 1.452e-3, 0.257, 0.668, 0.999]``: two tiny polishing steps and three large GAN steps.
 :func:`aamdm_schedule` builds the schedules of the ablations (other ``T_GAN``, ``T_ADM``).
 
-The sampler :func:`aamdm_sample` is one loop over the ``T`` levels; it counts its network calls
-(:class:`StepCount`), calls the library's per-step ``hook(t, x_t, x0_hat)`` after every step, and
-applies the guidance of eq. 13 when given a ``guide``. Training lives in
+The sampler :func:`aamdm_sample` runs the library's one reverse chain
+(:func:`minimdm.diffusion.reverse_chain`) with two step rules joined by a
+:class:`~minimdm.diffusion.Handover`: :class:`~minimdm.diffusion.DDGANStep` on the GAN's levels,
+:class:`~minimdm.diffusion.PolishStep` below. It counts its network calls (:class:`StepCount`),
+passes the per-step ``hook(t, x_t, x0_hat)`` on :math:`x_t` to the chain, and turns the guidance
+of eq. 13 (:class:`Guide`) and the clamp into hooks on :math:`\\hat x^0`. Training lives in
 :mod:`minimdm.aamdm.train`.
 """
 
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor, nn
@@ -43,7 +46,21 @@ from minimdm.aamdm.nets import (
 )
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.checkpoint import register_model_kind
-from minimdm.diffusion import Hook, NoiseSchedule, check_finite, q_posterior, q_sample
+from minimdm.diffusion import (
+    ClipX0,
+    DDGANStep,
+    Handover,
+    Hook,
+    NoiseSchedule,
+    PolishStep,
+    StepCount,
+    check_finite,
+    clamp_hook,
+    clip_bounds,
+    q_posterior_sample,
+    q_sample,
+    reverse_chain,
+)
 
 __all__ = [
     "PAPER_BETAS",
@@ -133,7 +150,7 @@ def aamdm_schedule(
 
 
 # --------------------------------------------------------------------------------------------
-# The two ways of drawing x_{t-1}
+# Real pairs for the discriminator (the fake ones: q_posterior_sample of minimdm.diffusion)
 
 
 def _bcast(buf: Tensor, t: Tensor, x: Tensor) -> Tensor:
@@ -159,23 +176,6 @@ def q_sample_pairs(
     noise = torch.randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
     alpha, beta = _bcast(schedule.alphas, t, x0), _bcast(schedule.betas, t, x0)
     return x_prev, alpha.sqrt() * x_prev + beta.sqrt() * noise
-
-
-def q_posterior_sample(
-    schedule: NoiseSchedule,
-    x0: Tensor,
-    x_t: Tensor,
-    t: Tensor | int,
-    generator: torch.Generator | None = None,
-) -> Tensor:
-    """Draw :math:`x^{t-1} \\sim q(x^{t-1} | x^t, x^0)` (Ho et al. eqs. 6-7).
-
-    DD-GAN's fake pairs put the generator's :math:`\\hat x^0` here (Xiao et al. eq. 9); at level
-    ``t = 0`` the posterior is a point mass on ``x0``.
-    """
-    mean, var = q_posterior(schedule, x0, x_t, t)
-    noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
-    return mean + var.sqrt() * noise
 
 
 # --------------------------------------------------------------------------------------------
@@ -210,8 +210,9 @@ class AAMDMConfig:
     """Random Fourier features in the generator's input (0: none)."""
     fourier_scale: float = 1.0
     """Their frequency scale (cycles per unit)."""
-    clip_x0: float | None = None
-    """Clamp every x0 estimate to [-clip_x0, clip_x0] while sampling (None: no clamp)."""
+    clip_x0: float | list | None = None
+    """Clamp every x0 estimate while sampling: None, a float c ([-c, c]) or [lo, hi] per feature
+    (the training data's range, see minimdm.diffusion.clip_bounds)."""
 
     def __post_init__(self) -> None:
         _check_steps(self.T_gan, self.T_adm)
@@ -223,6 +224,9 @@ class AAMDMConfig:
                 f"betas must hold T_gan + T_adm = {self.T_gan} + {self.T_adm} = "
                 f"{self.T_gan + self.T_adm} values, got {len(self.betas)}"
             )
+        bounds = clip_bounds(self.clip_x0, self.x_dim)  # raises on a bad clamp
+        if isinstance(bounds, tuple):  # JSON-able, for the checkpoint
+            self.clip_x0 = [bounds[0].tolist(), bounds[1].tolist()]
 
 
 class AAMDM(nn.Module):
@@ -306,28 +310,6 @@ register_model_kind("ddgan", AAMDM, lambda c: AAMDM(AAMDMConfig(**c)), lambda m:
 
 
 @dataclass
-class StepCount:
-    """What :func:`aamdm_sample` did: one entry per reverse step, noisiest first."""
-
-    levels: list[int] = field(default_factory=list)
-    """The level t of x^t each step started from."""
-    modules: list[str] = field(default_factory=list)
-    """'gan' or 'adm': the network that made that step."""
-
-    @property
-    def gan_steps(self) -> int:
-        return self.modules.count("gan")
-
-    @property
-    def adm_steps(self) -> int:
-        return self.modules.count("adm")
-
-    @property
-    def network_calls(self) -> int:
-        return len(self.modules)
-
-
-@dataclass
 class Guide:
     """Guided sampling, AAMDM eq. 13 (after Rempe et al. 2023).
 
@@ -341,19 +323,23 @@ class Guide:
     scale: float = 1.0
     """The step epsilon."""
 
+    def x0_hook(self, schedule: NoiseSchedule):
+        """Eq. 13 as a hook on :math:`\\hat x^0` of the reverse chain (:mod:`minimdm.diffusion`).
 
-def _with_grad_x0(fn: Callable[[Tensor], Tensor], x_t: Tensor, guide: Guide, alpha: Tensor):
-    """x0 = fn(x_t), then eq. 13's correction ``- scale * alpha * dJ/dx_t``."""
-    with torch.enable_grad():
-        x = x_t.detach().requires_grad_(True)
-        x0 = fn(x)
-        J = guide.cost(x0)
-        if J.shape != (x_t.shape[0],):
-            raise ValueError(
-                f"guide.cost must return shape ({x_t.shape[0]},), got {tuple(J.shape)}"
-            )
-        (grad,) = torch.autograd.grad(J.sum(), x)
-    return x0.detach() - guide.scale * alpha * grad
+        The chain runs the network with gradients on ``x_t`` for it (``needs_grad``).
+        """
+
+        def hook(t: int, x_t: Tensor, x0_hat: Tensor) -> Tensor:
+            J = self.cost(x0_hat)  # (B,)
+            if J.shape != (x_t.shape[0],):
+                raise ValueError(
+                    f"guide.cost must return shape ({x_t.shape[0]},), got {tuple(J.shape)}"
+                )
+            (grad,) = torch.autograd.grad(J.sum(), x_t)  # dJ/dx_t, (B, D)
+            return x0_hat.detach() - self.scale * schedule.alphas[t] * grad
+
+        hook.needs_grad = True
+        return hook
 
 
 @torch.no_grad()
@@ -369,10 +355,13 @@ def aamdm_sample(
     hook: Hook | None = None,
     guide: Guide | None = None,
     x_start: Tensor | None = None,
-    clip_x0: float | None = None,
+    clip_x0: ClipX0 = None,
     count: StepCount | None = None,
 ) -> Tensor:
     """Draft with ``T_gan`` DD-GAN steps, polish with ``T_adm`` diffusion steps (AAMDM §3.4).
+
+    One :func:`~minimdm.diffusion.reverse_chain` with :class:`~minimdm.diffusion.DDGANStep` on
+    the levels ``T-1 .. T-T_gan`` and :class:`~minimdm.diffusion.PolishStep` below them.
 
     Args:
         gan: :math:`G^{GAN}(x^t, t, cond, r) \\to \\hat x^0` (:class:`DDGANGenerator`).
@@ -386,7 +375,8 @@ def aamdm_sample(
         hook: ``hook(t, x_t, x0_hat) -> x_t`` after every step, ``t`` the new level.
         guide: eq. 13 guidance applied to every step's :math:`\\hat x^0`.
         x_start: the start at level ``T - 1`` (default: standard normal noise).
-        clip_x0: clamp every :math:`\\hat x^0` to ``[-clip_x0, clip_x0]``.
+        clip_x0: clamp every :math:`\\hat x^0` (after guidance): None, a float ``c``
+            (``[-c, c]``) or a per-feature ``(lo, hi)`` (:func:`~minimdm.diffusion.clip_bounds`).
         count: a :class:`StepCount` to fill with the steps taken.
 
     The generator sees the index of the level within the GAN chain, ``t - (T - T_gan)``, not
@@ -424,6 +414,7 @@ def aamdm_sample(
         if cond.shape[0] != B:
             raise ValueError(f"cond must have batch size {B}, got shape {tuple(cond.shape)}")
     device = cond.device if cond is not None else schedule.device
+    x0_hooks = [clamp_hook(clip_x0, D, device)] if clip_x0 is not None else []
     if x_start is not None:
         check_finite("x_start", x_start)
         _check_shape("x_start", x_start, (B, D))
@@ -432,34 +423,11 @@ def aamdm_sample(
         x = torch.randn((B, D), generator=generator, device=device)
     schedule = schedule.to(device)
     t_low = T - T_gan  # the first level below the GAN's
-    for t in range(T - 1, -1 if not gan_only else t_low - 1, -1):
-        tt = torch.full((B,), t, device=device, dtype=torch.long)
-        if t >= t_low:
-            r = torch.randn((B, latent), generator=generator, device=device)
-
-            def fn(x_in, k=tt - t_low, r=r):
-                return gan(x_in, k, cond, r)  # the GAN sees its own step index, t - T_adm
-
-            module = "gan"
-        else:
-
-            def fn(x_in, tt=tt):
-                return polisher(x_in, tt, cond)
-
-            module = "adm"
-        if guide is not None:
-            x0_hat = _with_grad_x0(fn, x, guide, schedule.alphas[t])
-        else:
-            x0_hat = fn(x)
-        if x0_hat.shape != (B, D):
-            raise ValueError(f"{module} returned shape {tuple(x0_hat.shape)}, expected {(B, D)}")
-        if clip_x0 is not None:
-            x0_hat = x0_hat.clamp(-clip_x0, clip_x0)
-        if count is not None:
-            count.levels.append(t)
-            count.modules.append(module)
-        last = t == 0 or (gan_only and t == t_low)
-        x = x0_hat if last else q_posterior_sample(schedule, x0_hat, x, t, generator)
-        if hook is not None:
-            x = hook(-1 if last else t - 1, x, x0_hat)
-    return x
+    # the GAN sees its own step index, t - T_adm
+    gan_rule = DDGANStep(gan, schedule, latent, t_offset=t_low)
+    rule = Handover(gan_rule, PolishStep(polisher, schedule) if polisher else None, t_low)
+    if guide is not None:
+        x0_hooks.insert(0, guide.x0_hook(schedule))
+    levels = range(T - 1, (t_low if gan_only else 0) - 1, -1)
+    hooks = [] if hook is None else [hook]
+    return reverse_chain(rule, x, levels, cond, generator, hooks, x0_hooks, count)

@@ -31,8 +31,15 @@ from minimdm.aamdm.motion import (
 )
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
+from minimdm.diffusion import data_range
 
-__all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
+__all__ = [
+    "AAMDMTrainConfig",
+    "load_train_config",
+    "load_motion_data",
+    "train_aamdm_motion",
+    "checkpoint_training_xz",
+]
 
 
 @dataclass
@@ -99,8 +106,9 @@ class AAMDMTrainConfig:
     """Discriminator learning rate."""
     r1_gamma: float = 0.3
     """R1 penalty weight."""
-    clip_x0: float | None = 6.0
-    """Clamp x0 estimates (standardised units) while sampling."""
+    clip_x0: float | str | None = "data"
+    """Clamp x0 estimates while sampling: 'data' (the per-feature range of the standardised xz
+    training data), a float c ([-c, c], standardised units) or None."""
     seed: int = 0
     """Seeds everything."""
     config_file: str | None = None
@@ -168,7 +176,7 @@ def train_aamdm_motion(
     xz_dim = X_DIM + c.z_dim
     tcfg = AAMDMConfig(
         xz_dim, xz_dim, c.T_gan, c.T_adm, latent_dim=c.latent_dim, width=c.width,
-        depth=c.depth, fourier=c.fourier, clip_x0=c.clip_x0,
+        depth=c.depth, fourier=c.fourier, clip_x0=None if c.clip_x0 == "data" else c.clip_x0,
     )  # fmt: skip
     mcfg = MotionModelConfig(
         norm.dim, X_DIM, c.z_dim, c.ae_width, c.ae_depth, list(c.horizons), asdict(tcfg)
@@ -211,6 +219,10 @@ def train_aamdm_motion(
     model.xz_mean.copy_(cat.mean(0))
     model.xz_std.copy_(cat.std(0).clamp_min(1e-3))
     xz = [(a - model.xz_mean) / model.xz_std for a in xz_raw]
+    if c.clip_x0 == "data":  # the sampler's clamp: the range of the standardised training xz
+        lo, hi = data_range(xz)
+        model.transition.config.clip_x0 = [lo.tolist(), hi.tolist()]
+        model.config.transition["clip_x0"] = model.transition.config.clip_x0
     windows = make_windows(xz, c.window)  # (W, h + 1, X + Z)
     report["windows"] = int(windows.shape[0])
 
@@ -260,6 +272,20 @@ def train_aamdm_motion(
         meta.update(step=c.gan_steps, report=report)
         save_checkpoint(out_dir, model, meta)
     return model, report
+
+
+@torch.no_grad()
+def checkpoint_training_xz(ckpt: Any) -> Tensor:
+    """The standardised xz (N, X + Z) a motion AAMDM checkpoint was trained on, rebuilt.
+
+    The clips are loaded as its config loaded them and embedded with the checkpoint's own
+    autoencoder and statistics, clip by clip, as in training: the frames its x0 clamp must cover.
+    """
+    cfg = dict(ckpt.config)
+    cfg["clips"] = (ckpt.metadata.get("data") or {}).get("clips") or cfg.get("clips")
+    d = load_motion_data(AAMDMTrainConfig(**cfg))
+    model = ckpt.model
+    return torch.cat([model.encode(y, x) for y, x in zip(d["y"], d["x"], strict=True)])
 
 
 def _round(d: dict, keys: tuple[str, ...] | None = None) -> dict:

@@ -135,8 +135,6 @@ def next_frame(
                 x_start=x_start,
                 clip_x0=clip_x0,
             )
-        if t_start is not None:
-            raise ValueError(f"t_start needs DDPM sampling (steps=None or T), got steps={steps}")
         return ddim_sample(
             model,
             schedule,
@@ -149,6 +147,7 @@ def next_frame(
             predicts,
             x_start=x_start,
             clip_x0=clip_x0,
+            t_start=t_start,
         )
     if hook is not None or t_start is not None or x_start is not None:
         raise ValueError(

@@ -51,7 +51,14 @@ from minimdm.checkpoint import (
     load_train_state,
     save_checkpoint,
 )
-from minimdm.diffusion import NoiseSchedule, diffusion_loss
+from minimdm.diffusion import (
+    NoiseSchedule,
+    clamp_share,
+    clamp_x0,
+    clip_bounds,
+    data_range,
+    diffusion_loss,
+)
 
 __all__ = [
     "TrainConfig",
@@ -64,6 +71,9 @@ __all__ = [
     "make_windows",
     "train_amdm",
     "TrainResult",
+    "resolve_clip_x0",
+    "checkpoint_training_frames",
+    "checkpoint_clamp_share",
 ]
 
 MODEL_KINDS = ("amdm", "mse", "mvae")
@@ -111,8 +121,9 @@ class TrainConfig:
     """Steps of pure teacher forcing (student probability 0)."""
     ramp_steps: int = 500
     """Steps over which the student probability rises linearly from 0 to 1."""
-    clip_x0: float | None = 5.0
-    """Clamp reconstructions to [-c, c] (normalized units) when fed back and when sampling."""
+    clip_x0: float | str | None = "data"
+    """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
+    normalized training frames), a float c ([-c, c]), or None."""
     # ---- EMA, evaluation, checkpoints
     ema_decay: float = 0.999
     """Decay of the exponential moving average of the weights (0: no EMA)."""
@@ -265,14 +276,15 @@ def window_loss(
     schedule: NoiseSchedule | None = None,
     predicts: str = "eps",
     kl_beta: float = 0.2,
-    clip_x0: float | None = None,
+    clip_x0: Any = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
     Frame 0 of each window is the ground-truth start. Frame ``f >= 1`` is predicted from the
     condition ``c_f``: ``c_1 = x_0``; for ``f > 1`` each sample takes its own previous
     prediction ``\\hat x_{f-1}`` (detached) with probability ``p_student``, else the ground truth
-    ``x_{f-1}``; a fed-back prediction is clamped to ``[-clip_x0, clip_x0]``.
+    ``x_{f-1}``; a fed-back prediction is clamped to ``clip_x0``: None, a float ``c``
+    (``[-c, c]``) or a per-feature range ``(lo, hi)`` (:func:`~minimdm.diffusion.clip_bounds`).
 
     For A-MDM the prediction fed back is the reconstruction :math:`\\hat x_0` at the noise level
     drawn for the loss, as in the paper. With eps-prediction it divides by
@@ -286,6 +298,7 @@ def window_loss(
             f"windows must have shape (B, N_r + 1 >= 2, D), got {tuple(windows.shape)}"
         )
     B, n1, D = windows.shape
+    bounds = clip_bounds(clip_x0, D, windows.device, windows.dtype)
     kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     if p_student <= 0:
         x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
@@ -300,8 +313,7 @@ def window_loss(
         if f + 1 < n1:
             pred = pred.detach()
             coin = torch.rand(B, generator=generator, device=windows.device) < p_student  # (B,)
-            if clip_x0 is not None:
-                pred = pred.clamp(-clip_x0, clip_x0)
+            pred = clamp_x0(pred, bounds)
             n_student += int(coin.sum())
             cond = torch.where(coin[:, None], pred, windows[:, f])
     frac = n_student / (B * max(n1 - 2, 1))
@@ -445,6 +457,7 @@ def _train(
         features, clip_names = loaded["features"], loaded["clip_names"]
         normalizer, skeleton, layout = loaded["normalizer"], loaded["skeleton"], loaded["layout"]
     windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
+    clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
     x_dim = windows.shape[-1]
     schedule = NoiseSchedule(config.schedule, config.T, device=device)
 
@@ -489,7 +502,7 @@ def _train(
             "schedule": config.schedule,
             "T": config.T,
             "predicts": config.predicts,
-            "clip_x0": config.clip_x0,
+            "clip_x0": clip_x0,
         }
 
     def save(at_step: int) -> None:
@@ -508,7 +521,7 @@ def _train(
         schedule=schedule,
         predicts=config.predicts,
         kl_beta=config.kl_beta,
-        clip_x0=config.clip_x0,
+        clip_x0=clip_x0,
     )
 
     # Built-in evaluation: teacher-forced loss on fixed windows with its own generator.
@@ -592,3 +605,55 @@ def _train(
         steps_per_second=done / seconds if seconds > 0 and done else 0.0,
         history=history,
     )
+
+
+# --------------------------------------------------------------------------------------------
+# The x0 clamp: the training data's range
+
+
+def resolve_clip_x0(clip_x0: Any, frames: Sequence[Tensor | np.ndarray]) -> Any:
+    """A config's ``clip_x0`` made concrete for the normalized training ``frames``.
+
+    ``"data"`` becomes the frames' per-feature range ``[[lo...], [hi...]]`` (JSON-able, what
+    checkpoints store as ``diffusion.clip_x0``); None and floats stay; a pair is checked.
+    """
+    if clip_x0 == "data":
+        lo, hi = data_range(frames)
+        return [lo.tolist(), hi.tolist()]
+    dim = torch.as_tensor(frames[0]).shape[-1]
+    bounds = clip_bounds(clip_x0, dim)
+    return [bounds[0].tolist(), bounds[1].tolist()] if isinstance(bounds, tuple) else bounds
+
+
+def checkpoint_training_frames(ckpt: Checkpoint) -> Tensor:
+    """The normalized frames (N, D) an A-MDM checkpoint was trained on, rebuilt from its metadata.
+
+    The clips are loaded as the training loaded them (names, fps, loop unrolling), encoded, and
+    normalized with the checkpoint's own statistics.
+    """
+    from minimdm.motion import data, features
+
+    cfg, meta = ckpt.config, ckpt.metadata
+    names = (meta.get("data") or {}).get("clips") or cfg.get("clips")
+    clips = data.load_clips(
+        fps=cfg.get("fps", 30.0), loop_frames=cfg.get("loop_frames", 150), names=names
+    )
+    if ckpt.normalizer is None:
+        raise ValueError(f"checkpoint {ckpt.paths.weights} records no normalizer")
+    norm = features.Normalizer.from_dict(ckpt.normalizer)
+    return torch.cat([norm.normalize(features.encode(c)) for c in clips])  # (N, D)
+
+
+def checkpoint_clamp_share(
+    ckpt: Checkpoint, clip_x0: Any = "checkpoint", frames: Tensor | None = None
+) -> float:
+    """The share of a checkpoint's training frames that its x0 clamp would change.
+
+    ``clip_x0="checkpoint"`` takes the checkpoint's ``diffusion.clip_x0``; pass another value
+    (e.g. the old 5.0) to compare. ``frames`` default to :func:`checkpoint_training_frames`.
+    A frame outside the clamp cannot come out of the sampler, so this should be 0.
+    """
+    if clip_x0 == "checkpoint":
+        clip_x0 = (ckpt.metadata.get("diffusion") or {}).get("clip_x0")
+    frames = checkpoint_training_frames(ckpt) if frames is None else frames
+    return clamp_share(clip_x0, frames)

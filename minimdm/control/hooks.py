@@ -1,10 +1,12 @@
 """The two pieces of control that act inside the denoising chain of one frame.
 
-* :func:`inpaint_hook` is a hook for the samplers of :mod:`minimdm.diffusion`: after every
+* :func:`inpaint_hook` is a hook on :math:`x_t` of the reverse chain
+  (:func:`minimdm.diffusion.reverse_chain`, through any sampler's ``hook=``): after every
   reverse step it overwrites the user-specified features with the targets noised to the
   chain's current level (A-MDM eq. 4).
 * :func:`inbetween_t_start` is the level a frame's chain starts from when it is initialised
-  with a noised keyframe (A-MDM eq. 5); it is passed to the sampler as ``t_start``.
+  with a noised keyframe (A-MDM eq. 5); it is passed to the sampler as ``t_start`` (DDPM, or
+  DDIM, which then follows its grid of levels below ``t_start``).
 
 Levels follow :mod:`minimdm.diffusion`: 0-based, ``T - 1`` is the noisiest, ``-1`` clean data.
 """

@@ -53,7 +53,7 @@ from minimdm.aamdm.train import (
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
 from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
-from minimdm.diffusion import NoiseSchedule, ddpm_sample
+from minimdm.diffusion import NoiseSchedule, data_range, ddpm_sample
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser, train_regressor
 
 __all__ = ["METHODS", "PANELS", "LABELS", "Squ9StudyConfig", "Squ9Study", "with_budget"]
@@ -235,13 +235,17 @@ class Squ9Study:
         self._timed("adm5", lambda: train_polisher(model, sched, self.sequences, sched.T, c.polish))
         self.models["adm5"], self.schedules["adm5"] = model.eval(), sched
 
+    def data_range(self) -> tuple[Tensor, Tensor]:
+        """The per-coordinate range of the training points: the AAMDM's x0 clamp."""
+        return data_range([self.x_prev, self.x_next, self.sequences.reshape(-1, 2)])
+
     def build_aamdm(self, T_gan: int = 3, T_adm: int = 2) -> AAMDM:
         """An untrained AAMDM of this study's size (weights seeded by ``config.seed``)."""
         c = self.config
         self._net_seed()
         cfg = AAMDMConfig(
             2, 2, T_gan, T_adm, latent_dim=c.latent_dim, width=c.width, depth=c.depth,
-            time_dim=32, fourier=c.fourier, clip_x0=2.0,
+            time_dim=32, fourier=c.fourier, clip_x0=self.data_range(),
         )  # fmt: skip
         return AAMDM(cfg).to(self.device)
 
