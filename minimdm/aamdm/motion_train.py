@@ -31,6 +31,7 @@ from minimdm.aamdm.motion import (
 )
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
+from minimdm.nn import cosine_lr, set_lr
 
 __all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
 
@@ -185,10 +186,10 @@ def train_aamdm_motion(
     y_pairs, x_pairs = _pairs(ys), _pairs(xs)
     ae = model.autoencoder
     opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=c.ae_steps, eta_min=c.ae_lr / 20)
     g = torch.Generator().manual_seed(c.seed)
     t0 = time.perf_counter()
     for step in range(c.ae_steps):
+        set_lr(opt, cosine_lr(step, c.ae_steps, c.ae_lr, c.ae_lr / 20))
         idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
         loss, info = autoencoder_loss(
             ae, y_pairs[idx], x_pairs[idx], norm.denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
@@ -197,7 +198,6 @@ def train_aamdm_motion(
         loss.backward()
         nn.utils.clip_grad_norm_(ae.parameters(), 1.0)
         opt.step()
-        sched.step()
         if (step + 1) % 500 == 0:
             log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
     report["autoencoder_s"] = time.perf_counter() - t0

@@ -29,7 +29,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
-import math
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -52,6 +51,7 @@ from minimdm.checkpoint import (
     save_checkpoint,
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
+from minimdm.nn import cosine_lr, ema_update, set_lr
 
 __all__ = [
     "TrainConfig",
@@ -204,9 +204,8 @@ def student_probability(config: TrainConfig, step: int) -> float:
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
-    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps``."""
-    frac = min(step / max(config.total_steps - 1, 1), 1.0)
-    return config.lr_min + 0.5 * (config.lr - config.lr_min) * (1 + math.cos(math.pi * frac))
+    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps`` (``minimdm.nn.cosine_lr``)."""
+    return cosine_lr(step, config.total_steps, config.lr, config.lr_min)
 
 
 def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
@@ -344,15 +343,6 @@ class TrainResult:
     """Speed of this call's training loop."""
     history: list[dict] = field(default_factory=list)
     """The log records of this call (training loss, evaluations)."""
-
-
-@torch.no_grad()
-def _ema_update(ema: nn.Module, model: nn.Module, decay: float, step: int) -> None:
-    d = min(decay, (1 + step) / (10 + step))  # warm-up: average less early on
-    for pe, p in zip(ema.parameters(), model.parameters(), strict=True):
-        pe.lerp_(p, 1 - d)
-    for be, b in zip(ema.buffers(), model.buffers(), strict=True):
-        be.copy_(b)
 
 
 def _load_data(config: TrainConfig) -> dict[str, Any]:
@@ -548,8 +538,7 @@ def _train(
         running, n_running = 0.0, 0
         while step < config.total_steps:
             lr = learning_rate(config, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
+            set_lr(opt, lr)
             p = student_probability(config, step)
             B, W = config.batch_size, windows.shape[0]
             idx = torch.randint(W, (B,), generator=gen, device=device)
@@ -562,7 +551,7 @@ def _train(
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             opt.step()
             if ema is not None:
-                _ema_update(ema, model, config.ema_decay, step)
+                ema_update(ema, model, config.ema_decay, step)
             step += 1
             running, n_running = running + loss.item(), n_running + 1
             record = {"step": step, "loss": loss.item(), "p_student": p, "lr": lr, **info}

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.diffusion import NoiseSchedule, check_finite, diffusion_loss
+from minimdm.nn import cosine_lr, set_lr
 
 __all__ = [
     "Squ9",
@@ -282,17 +283,16 @@ def train_denoiser(
     device = next(model.parameters()).device
     x_prev, x_next, schedule = x_prev.to(device), x_next.to(device), schedule.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
     predicts = getattr(model, "predicts", "eps")
     history = []
     model.train()
-    for idx in _batches(len(x_next), steps, batch_size, generator):
+    for step, idx in enumerate(_batches(len(x_next), steps, batch_size, generator)):
+        set_lr(opt, cosine_lr(step, steps, lr))
         idx = idx.to(device)
         loss, _ = diffusion_loss(model, schedule, x_next[idx], x_prev[idx], generator, predicts)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        sched.step()
         history.append(loss.item())
     model.eval()
     return history
@@ -311,16 +311,15 @@ def train_regressor(
     device = next(model.parameters()).device
     x_prev, x_next = x_prev.to(device), x_next.to(device)
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
     history = []
     model.train()
-    for idx in _batches(len(x_next), steps, batch_size, generator):
+    for step, idx in enumerate(_batches(len(x_next), steps, batch_size, generator)):
+        set_lr(opt, cosine_lr(step, steps, lr))
         idx = idx.to(device)
         loss = ((model(x_prev[idx]) - x_next[idx]) ** 2).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        sched.step()
         history.append(loss.item())
     model.eval()
     return history
