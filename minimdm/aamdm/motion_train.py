@@ -10,7 +10,6 @@ DeepMimic clips, then writes one checkpoint. Reproduce the book's model with
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -18,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from torch import Tensor, nn
 
+from minimdm import config as configs
 from minimdm.aamdm.model import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
 from minimdm.aamdm.motion import (
     X_DIM,
@@ -109,18 +108,8 @@ class AAMDMTrainConfig:
 
 
 def load_train_config(path: str | Path) -> AAMDMTrainConfig:
-    """Read a YAML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
-    path = Path(path)
-    data = yaml.safe_load(path.read_text()) or {}
-    names = {f.name for f in dataclasses.fields(AAMDMTrainConfig)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"{path}: unknown config keys {unknown}; valid keys are {sorted(names)}")
-    for f in dataclasses.fields(AAMDMTrainConfig):
-        if f.name in data and f.type in ("float", "float | None") and data[f.name] is not None:
-            data[f.name] = float(data[f.name])  # YAML reads 1e-3 as a string
-    data.setdefault("config_file", path.as_posix())
-    return AAMDMTrainConfig(**data)
+    """Read a YAML or TOML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
+    return configs.load_config(path, AAMDMTrainConfig)
 
 
 def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:

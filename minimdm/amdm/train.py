@@ -27,7 +27,6 @@ step k + 1 as an uninterrupted one, bit for bit.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
 import os
 import time
@@ -38,10 +37,10 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from minimdm import config as configs
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
 from minimdm.checkpoint import (
     Checkpoint,
@@ -139,14 +138,6 @@ class TrainConfig:
     """The YAML file this config came from (set by load_config; recorded in checkpoints)."""
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):  # YAML reads 5e-4 as a string and 30 as an int
-            v, kind = getattr(self, f.name), str(f.type).replace(" | None", "")
-            if v is None or kind not in ("int", "float"):
-                continue
-            try:
-                setattr(self, f.name, float(v) if kind == "float" else int(v))
-            except (TypeError, ValueError):
-                raise ValueError(f"{f.name} must be {f.type}, got {v!r}") from None
         if self.model_kind not in MODEL_KINDS:
             raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
         for name in ("width", "depth", "T", "batch_size", "total_steps", "rollout"):
@@ -176,19 +167,11 @@ _RESUMABLE_CHANGES = {
 
 
 def load_config(path: str | os.PathLike) -> TrainConfig:
-    """Read a YAML training config into a :class:`TrainConfig`; unknown keys are an error."""
-    path = Path(path)
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(
-            f"{path} must hold a mapping of TrainConfig fields, got {type(data).__name__}"
-        )
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"{path}: unknown config keys {unknown}; valid keys are {sorted(names)}")
-    data.setdefault("config_file", path.as_posix())
-    return TrainConfig(**data)
+    """Read a YAML or TOML training config into a :class:`TrainConfig`.
+
+    Unknown keys are an error and values take the field types (:func:`minimdm.config.load_config`).
+    """
+    return configs.load_config(path, TrainConfig)
 
 
 def student_probability(config: TrainConfig, step: int) -> float:
