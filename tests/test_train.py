@@ -32,13 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 D = 8
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks run fastest on one thread (and don't fight other processes for cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def synthetic_features(n_clips: int = 3, frames: int = 120, seed: int = 0) -> list[np.ndarray]:

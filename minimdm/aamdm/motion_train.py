@@ -31,6 +31,7 @@ from minimdm.aamdm.motion import (
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
 from minimdm.nn import cosine_lr, set_lr
+from minimdm.utils import num_threads
 
 __all__ = ["AAMDMTrainConfig", "load_train_config", "load_motion_data", "train_aamdm_motion"]
 
@@ -264,8 +265,8 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--out", default=None, help="checkpoint folder (default: checkpoints/NAME)")
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
     cfg = load_train_config(args.config)
     out = args.out or f"checkpoints/{Path(args.config).stem}"
-    _, report = train_aamdm_motion(cfg, out)
+    with num_threads(args.threads):
+        _, report = train_aamdm_motion(cfg, out)
     print(json.dumps({"checkpoint": out, **report}))

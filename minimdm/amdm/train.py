@@ -51,6 +51,7 @@ from minimdm.checkpoint import (
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
 from minimdm.nn import cosine_lr, ema_update, set_lr
+from minimdm.utils import num_threads as threads
 
 __all__ = [
     "TrainConfig",
@@ -387,14 +388,9 @@ def train_amdm(
         metadata: extra JSON-able facts stored in the checkpoint, e.g. the ``command`` that
             reproduces it (the CLI records it).
     """
-    old_threads = torch.get_num_threads()
-    if num_threads is not None:
-        torch.set_num_threads(num_threads)
-    try:
+    with threads(num_threads):
         args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback, metadata)
         return _train(config, out_dir, features, *args)
-    finally:
-        torch.set_num_threads(old_threads)
 
 
 def _train(
