@@ -291,7 +291,8 @@ def motion_metrics(
     """The Table 1 row for ``K`` samples from one initial state.
 
     Args:
-        samples: ``(K, F, J, 3)`` generated motions (the paper: K = 50, F = 150).
+        samples: ``(K, F, J, 3)`` generated motions (the paper: K = 50, F = 150), or one motion
+            ``(F, J, 3)`` (e.g. a clip of the dataset), which has no APD.
         parents, foot_joints: the skeleton.
         reference_lengths: ``(B,)`` ground-truth bone lengths in metres.
         reference: ``(F_ref, J, 3)`` ground-truth continuation; ADE/FDE use its first
@@ -301,12 +302,13 @@ def motion_metrics(
         ``{"APD", "ADE", "FDE", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist"}``
         in cm (cm / frame for FS, cm / frame² for Jnt.Accel, % for Pen.Freq).
     """
-    x = _positions("samples", samples, batched=True)
-    out = {"APD": apd(x)}
+    x = _positions("samples", samples)
+    out = {"APD": apd(x)} if x.dim() == 4 else {}  # one motion: no diversity
     if reference is not None:
         ref = _positions("reference", reference, batched=False)
-        n = min(ade_frames, ref.shape[0], x.shape[1])
-        out["ADE"], out["FDE"] = ade_fde(x[:, :n], ref[:n])
+        xk = x if x.dim() == 4 else x[None]  # (K, F, J, 3)
+        n = min(ade_frames, ref.shape[0], xk.shape[1])
+        out["ADE"], out["FDE"] = ade_fde(xk[:, :n], ref[:n])
     out["FS"] = foot_sliding(x, foot_joints, height_threshold, foot_offset)
     out["Bone.Err"] = bone_length_error(x, parents, reference_lengths)
     out["Jnt.Accel"] = joint_acceleration(x)
