@@ -31,12 +31,11 @@ def load_config(path: str | os.PathLike, cls: type[T]) -> T:
     field named ``config_file`` that the file does not set records the file's path.
     """
     path = Path(path)
-    text = path.read_text()
     suffix = path.suffix.lower()
     if suffix in (".yaml", ".yml"):
-        data = yaml.safe_load(text)
+        data = yaml.safe_load(path.read_text())
     elif suffix == ".toml":
-        data = _toml().loads(text)
+        data = _toml().loads(path.read_text())
     else:
         raise ValueError(f"{path}: a config must be a .yaml, .yml or .toml file")
     data = {} if data is None else data
