@@ -14,7 +14,9 @@
 * **Drift.** Bone error and root height over a long rollout, per window (:func:`drift`).
 
 The dataset's own row (:func:`dataset_row`) gives the targets for Jnt.Accel (closer is better)
-and the floor of FS and penetration that the measurement itself produces.
+and the floor of FS and penetration that the measurement itself produces. Rows print with
+:func:`format_table` (:func:`minimdm.utils.format_table`); the chapter's steps sweep and its
+stored benchmark rows are :mod:`minimdm.studies.amdm_tables`.
 """
 
 from __future__ import annotations
