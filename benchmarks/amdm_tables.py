@@ -24,12 +24,15 @@ from common import emit, hardware
 
 import minimdm
 from minimdm.amdm import evaluation
+from minimdm.studies import amdm_tables
 
 STEPS = (1, 2, 5, 10, 20, 40, 100)
 
 
 def cells(row: dict) -> dict:
-    return {k: {"mean": round(m, 4), "std": round(s, 4)} for k, (m, s) in row.items()}
+    """``{metric: {"mean", "std"}}``; a plain number (ms/frame) gets std 0."""
+    pairs = {k: v if isinstance(v, tuple) else (v, 0.0) for k, v in row.items()}
+    return {k: {"mean": round(m, 4), "std": round(s, 4)} for k, (m, s) in pairs.items()}
 
 
 def main() -> None:
@@ -71,10 +74,8 @@ def main() -> None:
 
     if "steps" in only:
         steps_models = {f"T={T}": minimdm.pretrained(f"amdm_steps/T{T}") for T in STEPS}
-        tab = evaluation.table1(steps_models, protocol, device=args.device)
-        for (name, row), T in zip(tab.items(), STEPS, strict=True):
-            ms = evaluation.time_per_frame(steps_models[name], device=args.device)
-            row["ms/frame"] = (ms, 0.0)
+        tab = amdm_tables.steps_table(steps_models, protocol, device=args.device)
+        for (_, row), T in zip(tab.items(), STEPS, strict=True):
             emit({"table": "steps", "T": T, "checkpoint": f"amdm_steps/T{T}", **base,
                   **cells(row)}, args.save)  # fmt: skip
         cols = ("APD", "ADE", "FS", "ms/frame")

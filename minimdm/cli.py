@@ -42,10 +42,10 @@ def _overrides(pairs: list[str]) -> dict:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    import dataclasses
     import shlex
 
-    from minimdm.amdm.train import TrainConfig, load_config, train_amdm
+    from minimdm.amdm.train import load_config, train_amdm
+    from minimdm.config import with_changes
 
     config = load_config(args.config)
     changes = _overrides(args.set or [])
@@ -53,10 +53,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         changes["total_steps"] = args.steps
     if args.device is not None:
         changes["device"] = args.device
-    unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(TrainConfig)})
-    if unknown:
-        raise ValueError(f"--set: unknown config keys {unknown}")
-    config = TrainConfig(**{**dataclasses.asdict(config), **changes})
+    config = with_changes(config, changes, where="--set")
     out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
     command = ["minimdm", "train", Path(args.config).as_posix()]
     command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]

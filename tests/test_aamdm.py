@@ -28,12 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BOOK = ROOT / "checkpoints" / "aamdm_book"
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # ----------------------------------------------------------------------------------------------

@@ -18,18 +18,14 @@ from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, ddpm_sample, q_sample
 from minimdm.motion.features import FeatureLayout, Normalizer, decode_root
 from minimdm.motion.skeleton import Skeleton
+from minimdm.utils import num_threads
 
 J = 2
 D = 3 + 12 * J  # the A-MDM frame of a 2-joint skeleton
 LAYOUT = FeatureLayout(("root", "head"))
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 class Recorder(MLPDenoiser):
@@ -368,11 +364,14 @@ def walker(tmp_path_factory):
     It predicts eps: at this size the x0-predicting model continues each clip almost
     deterministically, leaving a pool of candidates nothing to choose from.
     """
+    with num_threads(1):
+        return _train_walker(tmp_path_factory)
+
+
+def _train_walker(tmp_path_factory):
     from minimdm.amdm.train import TrainConfig, train_amdm
     from minimdm.motion import data, features
 
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
     names = ["walk", "walker/turn_left0", "walker/turn_right0", "run"]
     clips = data.load_clips(fps=30, loop_frames=150, names=names)
     arr = [features.encode(c) for c in clips]
@@ -386,7 +385,6 @@ def walker(tmp_path_factory):
     out = tmp_path_factory.mktemp("walker")
     res = train_amdm(cfg, out, [norm.normalize(a) for a in arr], normalizer=norm,
                      skeleton=clips.skeleton, layout=layout, progress=False)  # fmt: skip
-    torch.set_num_threads(n)
     return res.checkpoint, clips
 
 

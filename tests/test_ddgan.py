@@ -42,14 +42,7 @@ from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import DDGANStep, Handover, PolishStep, q_sample, reverse_chain
 from minimdm.toy.squ9 import Squ9, squ9_metrics
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks: one thread is faster, and immune to other processes on a busy machine."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # ----------------------------------------------------------------------------------------------

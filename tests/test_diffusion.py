@@ -638,13 +638,9 @@ def test_bad_clamp_raises_naming_clip_x0(bad, match):
 E2E_PRECISION_BOUND = 0.7
 
 
+@pytest.mark.usefixtures("one_thread")  # a tiny model: one thread is as fast, immune to busy cores
 def test_e2e_squ9_ddpm_full_coverage():
-    n_threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # a tiny model: one thread is as fast and immune to busy cores
-    try:
-        _e2e_squ9()
-    finally:
-        torch.set_num_threads(n_threads)
+    _e2e_squ9()
 
 
 def _e2e_squ9():

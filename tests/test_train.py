@@ -27,18 +27,13 @@ from minimdm.checkpoint import (
 from minimdm.diffusion import NoiseSchedule, predict_x0_from_eps
 from minimdm.motion.features import FeatureLayout
 from minimdm.motion.skeleton import Skeleton
+from minimdm.nn import cosine_lr
 
 ROOT = Path(__file__).resolve().parents[1]
 D = 8
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks run fastest on one thread (and don't fight other processes for cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def synthetic_features(n_clips: int = 3, frames: int = 120, seed: int = 0) -> list[np.ndarray]:
@@ -120,6 +115,26 @@ def test_resume_gives_the_same_next_step(tmp_path, kind):
     # a resumed run with another model config is refused, naming the difference
     with pytest.raises(ValueError, match="width"):
         train_amdm(tiny(model_kind=kind, width=48, total_steps=k + 2), tmp_path / "cut", feats)
+
+
+def test_the_loop_averages_with_the_shared_ema_and_follows_the_shared_schedule(tmp_path):
+    """One step from the seeded initial weights: the EMA is ``ema_update`` of them (d = 0.1 at
+    step 0), and every step's learning rate is ``cosine_lr`` of the config."""
+    cfg = tiny(total_steps=1, ema_decay=0.99, lr=1e-3, lr_min=1e-4)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)
+        init = build_network(cfg, D).state_dict()
+    train_amdm(cfg, tmp_path, synthetic_features(), progress=False)
+    _, state = load_train_state(tmp_path)
+    for key, theta in state["model"].items():
+        assert not torch.equal(theta, init[key]) or key.startswith("norms")  # it moved
+        assert torch.equal(state["ema"][key], init[key].lerp(theta, 1 - 0.1)), key
+    rates = []
+    cfg = tiny(total_steps=7, lr=1e-3, lr_min=1e-4, ema_decay=0.0)
+    train_amdm(cfg, tmp_path / "lr", synthetic_features(), progress=False,
+               callback=lambda step, rec: rates.append(rec["lr"]))  # fmt: skip
+    assert rates == [cosine_lr(s, 7, 1e-3, 1e-4) for s in range(7)]
+    assert rates[0] == 1e-3 and rates[-1] == pytest.approx(1e-4)
 
 
 def test_student_probability_schedule():

@@ -35,6 +35,7 @@ from torch import Tensor, nn
 from minimdm.aamdm.model import AAMDM, AAMDMConfig
 from minimdm.checkpoint import register_model_kind
 from minimdm.motion.skeleton import Skeleton, heading_angle, sixd_to_matrix, wrap_angle
+from minimdm.nn import MLP
 
 __all__ = [
     "trajectory_features",
@@ -112,22 +113,14 @@ def fk_positions(features: Tensor, skeleton: Skeleton) -> Tensor:
 # The autoencoder (§3.1)
 
 
-def _mlp(d_in: int, d_out: int, width: int, depth: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for _ in range(depth - 1):
-        layers += [nn.Linear(d_in, width), nn.SiLU(), nn.LayerNorm(width)]
-        d_in = width
-    return nn.Sequential(*layers, nn.Linear(d_in, d_out))
-
-
 class PoseAutoencoder(nn.Module):
     """:math:`E^{AE}(y) \\to z` and :math:`D^{AE}(x, z) \\to \\hat y`, on normalized frames."""
 
     def __init__(self, y_dim: int, x_dim: int, z_dim: int, width: int, depth: int) -> None:
         super().__init__()
         self.y_dim, self.x_dim, self.z_dim = y_dim, x_dim, z_dim
-        self.encoder = _mlp(y_dim, z_dim, width, depth)
-        self.decoder = _mlp(x_dim + z_dim, y_dim, width, depth)
+        self.encoder = MLP(y_dim, z_dim, width, depth).sequential()
+        self.decoder = MLP(x_dim + z_dim, y_dim, width, depth).sequential()
 
     def encode(self, y: Tensor) -> Tensor:
         if y.shape[-1] != self.y_dim:

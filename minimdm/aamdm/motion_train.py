@@ -10,7 +10,6 @@ DeepMimic clips, then writes one checkpoint. Reproduce the book's model with
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -18,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from torch import Tensor, nn
 
+from minimdm import config as configs
 from minimdm.aamdm.model import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
 from minimdm.aamdm.motion import (
     X_DIM,
@@ -32,6 +31,8 @@ from minimdm.aamdm.motion import (
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
 from minimdm.diffusion import data_range
+from minimdm.nn import cosine_lr, set_lr
+from minimdm.utils import num_threads
 
 __all__ = [
     "AAMDMTrainConfig",
@@ -116,18 +117,8 @@ class AAMDMTrainConfig:
 
 
 def load_train_config(path: str | Path) -> AAMDMTrainConfig:
-    """Read a YAML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
-    path = Path(path)
-    data = yaml.safe_load(path.read_text()) or {}
-    names = {f.name for f in dataclasses.fields(AAMDMTrainConfig)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"{path}: unknown config keys {unknown}; valid keys are {sorted(names)}")
-    for f in dataclasses.fields(AAMDMTrainConfig):
-        if f.name in data and f.type in ("float", "float | None") and data[f.name] is not None:
-            data[f.name] = float(data[f.name])  # YAML reads 1e-3 as a string
-    data.setdefault("config_file", path.as_posix())
-    return AAMDMTrainConfig(**data)
+    """Read a YAML or TOML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
+    return configs.load_config(path, AAMDMTrainConfig)
 
 
 def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
@@ -193,10 +184,10 @@ def train_aamdm_motion(
     y_pairs, x_pairs = _pairs(ys), _pairs(xs)
     ae = model.autoencoder
     opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=c.ae_steps, eta_min=c.ae_lr / 20)
     g = torch.Generator().manual_seed(c.seed)
     t0 = time.perf_counter()
     for step in range(c.ae_steps):
+        set_lr(opt, cosine_lr(step, c.ae_steps, c.ae_lr, c.ae_lr / 20))
         idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
         loss, info = autoencoder_loss(
             ae, y_pairs[idx], x_pairs[idx], norm.denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
@@ -205,7 +196,6 @@ def train_aamdm_motion(
         loss.backward()
         nn.utils.clip_grad_norm_(ae.parameters(), 1.0)
         opt.step()
-        sched.step()
         if (step + 1) % 500 == 0:
             log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
     report["autoencoder_s"] = time.perf_counter() - t0
@@ -301,8 +291,8 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--out", default=None, help="checkpoint folder (default: checkpoints/NAME)")
     t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
     cfg = load_train_config(args.config)
     out = args.out or f"checkpoints/{Path(args.config).stem}"
-    _, report = train_aamdm_motion(cfg, out)
+    with num_threads(args.threads):
+        _, report = train_aamdm_motion(cfg, out)
     print(json.dumps({"checkpoint": out, **report}))

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from minimdm.amdm.models import timestep_embedding
 from minimdm.checkpoint import register_model_kind
+from minimdm.nn import MLP
 
 __all__ = [
     "FourierFeatures",
@@ -68,33 +69,29 @@ class GeneratorConfig:
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
 
 
-class DDGANGenerator(nn.Module):
+class DDGANGenerator(MLP):
     """:math:`G^{GAN}(x^t, x_{n-1}, r, t) \\to \\hat x^0` (AAMDM eq. 10).
 
-    The A-MDM body (SiLU then LayerNorm). The latent ``r`` enters with the input and, like the
-    level embedding, as a bias on every hidden layer, so that it cannot be ignored (the
+    The A-MDM body (an :class:`~minimdm.nn.MLP`). The latent ``r`` enters with the input and,
+    like the level embedding, as a bias on every hidden layer, so that it cannot be ignored (the
     style-modulation of DD-GAN's generator, reduced to an MLP).
     """
 
     def __init__(self, config: GeneratorConfig) -> None:
-        super().__init__()
         if config.depth < 2 or config.latent_dim < 1:
             raise ValueError(
                 f"depth must be >= 2 and latent_dim >= 1, got {config.depth}, {config.latent_dim}"
             )
-        self.config = c = config
-        w = c.width
-        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), nn.SiLU(), nn.Linear(w, w))
-        self.latent_mlp = nn.Sequential(nn.Linear(c.latent_dim, w), nn.SiLU(), nn.Linear(w, w))
-        self.x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 1)
-        self.c_features = FourierFeatures(
-            c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 2
-        )
-        in_dim = self.x_features.out_dim + (self.c_features.out_dim if c.cond_dim else 0)
-        self.input = nn.Linear(in_dim + c.latent_dim, w)
-        self.hidden = nn.ModuleList(nn.Linear(w, w) for _ in range(c.depth - 2))
-        self.norms = nn.ModuleList(nn.LayerNorm(w) for _ in range(c.depth - 1))
-        self.output = nn.Linear(w, c.x_dim)
+        c, w = config, config.width
+        time_mlp = MLP(c.time_dim, w, w, depth=2, norm=False).sequential()
+        latent_mlp = MLP(c.latent_dim, w, w, depth=2, norm=False).sequential()
+        x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 1)
+        c_features = FourierFeatures(c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 2)
+        in_dim = x_features.out_dim + (c_features.out_dim if c.cond_dim else 0)
+        super().__init__(in_dim + c.latent_dim, c.x_dim, w, c.depth)
+        self.config = config
+        self.time_mlp, self.latent_mlp = time_mlp, latent_mlp
+        self.x_features, self.c_features = x_features, c_features
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None, r: Tensor) -> Tensor:
         c = self.config
@@ -107,10 +104,7 @@ class DDGANGenerator(nn.Module):
             parts.insert(1, self.c_features(cond))
         v = torch.cat(parts, dim=-1)  # (B, x + c + 4F + latent)
         e = self.time_mlp(timestep_embedding(t, c.time_dim)) + self.latent_mlp(r)  # (B, W)
-        h = self.norms[0](nn.functional.silu(self.input(v) + e))
-        for layer, norm in zip(self.hidden, self.norms[1:], strict=True):
-            h = norm(nn.functional.silu(layer(h) + e))
-        return self.output(h)  # (B, D)
+        return super().forward(v, add=e)  # (B, D)
 
 
 @dataclass
@@ -133,29 +127,26 @@ class DiscriminatorConfig:
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
 
 
-class DDGANDiscriminator(nn.Module):
+class DDGANDiscriminator(MLP):
     """:math:`D^{GAN}(x^{t-1}, x^t, x_{n-1}, t)`: a logit, real pair vs generated pair (eq. 12).
 
-    An MLP with LeakyReLU(0.2) and no normalisation (the usual GAN discriminator), the level
-    embedding added to every hidden layer.
+    An :class:`~minimdm.nn.MLP` with LeakyReLU(0.2) and no normalisation (the usual GAN
+    discriminator), the level embedding added to every hidden layer.
     """
 
     def __init__(self, config: DiscriminatorConfig) -> None:
-        super().__init__()
         if config.depth < 2:
             raise ValueError(f"depth must be >= 2, got {config.depth}")
-        self.config = c = config
-        w = c.width
-        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), nn.SiLU(), nn.Linear(w, w))
+        c, w = config, config.width
+        time_mlp = MLP(c.time_dim, w, w, depth=2, norm=False).sequential()
         # one set of frequencies for x_{t-1} and x_t (the same space), one for the condition
-        self.x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 3)
-        self.c_features = FourierFeatures(
-            c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 4
-        )
-        in_dim = 2 * self.x_features.out_dim + (self.c_features.out_dim if c.cond_dim else 0)
-        self.input = nn.Linear(in_dim, w)
-        self.hidden = nn.ModuleList(nn.Linear(w, w) for _ in range(c.depth - 2))
-        self.output = nn.Linear(w, 1)
+        x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 3)
+        c_features = FourierFeatures(c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 4)
+        in_dim = 2 * x_features.out_dim + (c_features.out_dim if c.cond_dim else 0)
+        super().__init__(in_dim, 1, w, c.depth, activation="leaky_relu", norm=False)
+        self.config = config
+        self.time_mlp = time_mlp
+        self.x_features, self.c_features = x_features, c_features
 
     def forward(self, x_prev: Tensor, x_t: Tensor, cond: Tensor | None, t: Tensor) -> Tensor:
         c = self.config
@@ -163,10 +154,7 @@ class DDGANDiscriminator(nn.Module):
         if c.cond_dim:
             parts.append(self.c_features(cond))
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
-        h = nn.functional.leaky_relu(self.input(torch.cat(parts, -1)) + e, 0.2)
-        for layer in self.hidden:
-            h = nn.functional.leaky_relu(layer(h) + e, 0.2)
-        return self.output(h)[:, 0]  # (B,)
+        return super().forward(torch.cat(parts, -1), add=e)[:, 0]  # (B,)
 
 
 def _check_shape(name: str, x: Tensor | None, shape: tuple[int, ...]) -> None:

@@ -21,7 +21,6 @@ left untouched. A run resumes from its training state.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ from minimdm.aamdm.model import (
 )
 from minimdm.checkpoint import checkpoint_paths, load_train_state, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, q_sample
+from minimdm.nn import cosine_lr, ema_update, set_lr
 
 __all__ = [
     "GANDivergedError",
@@ -167,11 +167,6 @@ def polish_loss(
     return l_val + w_vel * l_vel, {"l_val": float(l_val.detach()), "l_vel": float(l_vel.detach())}
 
 
-def _cosine_lr(lr: float, step: int, steps: int) -> float:
-    frac = min(step / max(steps - 1, 1), 1.0)
-    return lr / 20 + 0.5 * (lr - lr / 20) * (1 + math.cos(math.pi * frac))
-
-
 def train_polisher(
     polisher: nn.Module,
     schedule: NoiseSchedule,
@@ -195,8 +190,7 @@ def train_polisher(
     history = []
     polisher.train()
     for step in range(config.steps):
-        for g in opt.param_groups:
-            g["lr"] = _cosine_lr(config.lr, step, config.steps)
+        set_lr(opt, cosine_lr(step, config.steps, config.lr, config.lr / 20))
         w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
         x0_hat = polisher_rollout(
             polisher, schedule, w, T_adm, gen, detach=not config.backprop_rollout
@@ -355,10 +349,8 @@ def train_ddgan(
     disc.train()
     t0 = time.perf_counter()
     while step < config.steps:
-        frac = 0.5 * (1 + math.cos(math.pi * min(step / max(config.steps - 1, 1), 1.0)))
         for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
-            for group in opt.param_groups:
-                group["lr"] = lr * (config.lr_end + (1 - config.lr_end) * frac)
+            set_lr(opt, cosine_lr(step, config.steps, lr, lr * config.lr_end))
         w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
         B, n1, D = w.shape
         if use_rollout:
@@ -400,11 +392,7 @@ def train_ddgan(
         if config.grad_clip > 0:
             nn.utils.clip_grad_norm_(gan.parameters(), config.grad_clip)
         opt_g.step()
-        with torch.no_grad():
-            d = min(config.ema_decay, (1 + step) / (10 + step))
-            for key, v in gan.state_dict().items():
-                if v.dtype.is_floating_point:
-                    ema[key].lerp_(v, 1 - d)
+        ema_update(ema, gan, config.ema_decay, step)
         step += 1
         record = {"step": step, **info, "seconds": time.perf_counter() - t0}
         history.append(record)

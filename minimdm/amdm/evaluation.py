@@ -14,16 +14,16 @@
 * **Drift.** Bone error and root height over a long rollout, per window (:func:`drift`).
 
 The dataset's own row (:func:`dataset_row`) gives the targets for Jnt.Accel (closer is better)
-and the floor of FS and penetration that the measurement itself produces.
+and the floor of FS and penetration that the measurement itself produces. Rows print with
+:func:`format_table` (:func:`minimdm.utils.format_table`); the chapter's steps sweep and its
+stored benchmark rows are :mod:`minimdm.studies.amdm_tables`.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,7 @@ from minimdm.motion import metrics
 from minimdm.motion.data import MotionDataset, load_clips
 from minimdm.motion.features import StartPose, encode, start_pose_of
 from minimdm.motion.skeleton import Skeleton
+from minimdm.utils import format_table  # re-exported: the chapters print tables with it
 
 __all__ = [
     "Protocol",
@@ -52,11 +53,15 @@ __all__ = [
     "time_per_frame",
     "drift",
     "format_table",
-    "read_results",
 ]
 
 TABLE1_COLUMNS = ("APD", "ADE", "FDE", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist")
 TABLE2_COLUMNS = ("APD", "FS", "Bone.Err", "Jnt.Accel", "Pen.Freq", "Pen.Dist")
+
+
+def _in_table_order(names) -> list[str]:
+    """Metric names in the order of Table 1, then any others sorted (rows print in this order)."""
+    return [c for c in TABLE1_COLUMNS if c in names] + sorted(set(names) - set(TABLE1_COLUMNS))
 
 
 @dataclass
@@ -223,7 +228,7 @@ def evaluate(
                     foot_offset=foot_offset,
                 )
             )
-        keys = rows[0].keys() | set().union(*(r.keys() for r in rows))
+        keys = _in_table_order(set().union(*(r.keys() for r in rows)))
         return {k: float(np.mean([r[k] for r in rows if k in r])) for k in keys}
 
     return metrics.over_seeds(one_seed, P.seeds)
@@ -238,17 +243,16 @@ def dataset_row(
     """
     foot_offset = _foot_offset(dataset, skeleton)
     ref_len = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
-    per_clip = []
-    for c in dataset:
-        x = c.positions[:window]
-        row = {
-            "FS": metrics.foot_sliding(x, skeleton.foot_indices, foot_offset=foot_offset),
-            "Bone.Err": metrics.bone_length_error(x, skeleton.parents, ref_len),
-            "Jnt.Accel": metrics.joint_acceleration(x),
-        }
-        pen = metrics.foot_penetration(x, skeleton.foot_indices, foot_offset=foot_offset)
-        row["Pen.Freq"], row["Pen.Dist"] = pen
-        per_clip.append(row)
+    per_clip = [
+        metrics.motion_metrics(  # one motion (F, J, 3): no APD, no ADE
+            c.positions[:window],
+            skeleton.parents,
+            skeleton.foot_indices,
+            ref_len,
+            foot_offset=foot_offset,
+        )
+        for c in dataset
+    ]
     return {k: metrics.mean_std(r[k] for r in per_clip) for k in per_clip[0]}
 
 
@@ -368,49 +372,3 @@ def drift(
         "root_height": np.array(height),
         "root_height_std": np.array(height_std),
     }
-
-
-def format_table(
-    table: Mapping[str, Mapping[str, tuple[float, float] | float]],
-    columns: Sequence[str] | None = None,
-    digits: int = 2,
-) -> str:
-    """A plain-text table, one row per model, cells ``mean ± std`` (``-`` where missing)."""
-    if not table:
-        raise ValueError("table must hold at least one row")
-    if columns is None:
-        seen = [k for row in table.values() for k in row]
-        columns = [c for c in TABLE1_COLUMNS if c in seen] + [
-            c for c in dict.fromkeys(seen) if c not in TABLE1_COLUMNS
-        ]
-
-    def cell(v) -> str:
-        if v is None:
-            return "-"
-        if isinstance(v, tuple):
-            return f"{v[0]:.{digits}f} ± {v[1]:.{digits}f}"
-        return f"{v:.{digits}f}"
-
-    rows = [[name] + [cell(r.get(c)) for c in columns] for name, r in table.items()]
-    head = ["model", *columns]
-    widths = [max(len(x) for x in col) for col in zip(head, *rows, strict=True)]
-    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
-    return "\n".join([fmt.format(*head)] + [fmt.format(*r) for r in rows])
-
-
-def read_results(path: str | Path, table: str, key: str = "model") -> dict[str, dict]:
-    """Rows of one table from a JSON-lines file written by ``benchmarks/amdm_tables.py``.
-
-    Returns ``{row name: {metric: (mean, std)}}``, ready for :func:`format_table`.
-    """
-    out: dict[str, dict] = {}
-    for line in Path(path).read_text().splitlines():
-        rec = json.loads(line)
-        if rec.get("table") != table:
-            continue
-        cells = {k: (v["mean"], v["std"]) for k, v in rec.items() if isinstance(v, dict)
-                 and set(v) == {"mean", "std"}}  # fmt: skip
-        out[str(rec.get(key))] = cells
-    if not out:
-        raise ValueError(f"{path} holds no rows of table {table!r}")
-    return out

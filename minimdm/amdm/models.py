@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.checkpoint import register_model_kind
+from minimdm.nn import MLP
 
 __all__ = [
     "DenoiserConfig",
@@ -62,30 +63,28 @@ class DenoiserConfig:
     """What the network outputs: 'eps' (A-MDM eq. 3) or 'x0'."""
 
 
-class MLPDenoiser(nn.Module):
+class MLPDenoiser(MLP):
     """The A-MDM denoiser :math:`p_\\theta(x_{f-1}, x_f^t, e^t)`.
 
     ``forward(x_t, t, cond)`` takes ``x_t`` (B, D), integer steps ``t`` (B,) and the previous
-    frame ``cond`` (B, C); it returns (B, D). The time embedding is added to every hidden layer
-    so that the step is seen throughout the network.
+    frame ``cond`` (B, C); it returns (B, D). The body is an :class:`~minimdm.nn.MLP` on
+    ``[x_t, cond]``; the time embedding is added to every hidden layer so that the step is seen
+    throughout the network.
     """
 
     def __init__(self, config: DenoiserConfig) -> None:
-        super().__init__()
         if config.depth < 2:
             raise ValueError(
                 f"depth must be >= 2 (one hidden and one output layer), got {config.depth}"
             )
         if config.predicts not in ("eps", "x0"):
             raise ValueError(f"predicts must be 'eps' or 'x0', got {config.predicts!r}")
+        w = config.width
+        time_mlp = MLP(config.time_dim, w, w, depth=2, norm=False).sequential()  # e^t -> (B, W)
+        super().__init__(config.x_dim + config.cond_dim, config.x_dim, w, config.depth)
+        self.time_mlp = time_mlp
         self.config = config
         self.predicts = config.predicts
-        w = config.width
-        self.time_mlp = nn.Sequential(nn.Linear(config.time_dim, w), nn.SiLU(), nn.Linear(w, w))
-        self.input = nn.Linear(config.x_dim + config.cond_dim, w)
-        self.hidden = nn.ModuleList(nn.Linear(w, w) for _ in range(config.depth - 2))
-        self.norms = nn.ModuleList(nn.LayerNorm(w) for _ in range(config.depth - 1))
-        self.output = nn.Linear(w, config.x_dim)
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config
@@ -95,14 +94,11 @@ class MLPDenoiser(nn.Module):
             if cond is None or cond.shape != (x_t.shape[0], c.cond_dim):
                 got = None if cond is None else tuple(cond.shape)
                 raise ValueError(f"cond must have shape ({x_t.shape[0]}, {c.cond_dim}), got {got}")
-            h = torch.cat([x_t, cond], dim=-1)
+            h = torch.cat([x_t, cond], dim=-1)  # (B, D + C)
         else:
             h = x_t
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
-        h = self.norms[0](nn.functional.silu(self.input(h) + e))  # (B, W)
-        for layer, norm in zip(self.hidden, self.norms[1:], strict=True):
-            h = norm(nn.functional.silu(layer(h) + e))
-        return self.output(h)  # (B, D)
+        return super().forward(h, add=e)  # (B, D)
 
     def config_dict(self) -> dict:
         return asdict(self.config)
@@ -116,13 +112,7 @@ class MLPRegressor(nn.Module):
 
     def __init__(self, x_dim: int, cond_dim: int, width: int = 256, depth: int = 4) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        d = cond_dim
-        for _ in range(depth - 1):
-            layers += [nn.Linear(d, width), nn.SiLU(), nn.LayerNorm(width)]
-            d = width
-        layers.append(nn.Linear(d, x_dim))
-        self.net = nn.Sequential(*layers)
+        self.net = MLP(cond_dim, x_dim, width, depth).sequential()
         self.x_dim, self.cond_dim = x_dim, cond_dim
 
     def forward(self, cond: Tensor) -> Tensor:
@@ -164,19 +154,15 @@ class MVAE(nn.Module):
             raise ValueError(f"depth must be >= 2, got {config.depth}")
         self.config = config
         c, w = config, config.width
-        self.encoder = nn.Sequential(
-            nn.Linear(c.x_dim + c.cond_dim, w),
-            nn.SiLU(),
-            nn.LayerNorm(w),
-            nn.Linear(w, w),
-            nn.SiLU(),
-            nn.LayerNorm(w),
-            nn.Linear(w, 2 * c.latent_dim),
-        )
-        dims = [c.cond_dim] + [w] * (c.depth - 1)
-        self.decoder = nn.ModuleList(nn.Linear(d + c.latent_dim, w) for d in dims[:-1])
-        self.decoder_norms = nn.ModuleList(nn.LayerNorm(w) for _ in dims[:-1])
-        self.output = nn.Linear(w + c.latent_dim, c.x_dim)
+        self.encoder = MLP(c.x_dim + c.cond_dim, 2 * c.latent_dim, w, depth=3).sequential()
+        decoder = MLP(c.cond_dim, c.x_dim, w, c.depth, concat_dim=c.latent_dim)
+        # The decoder's layers keep the names of the shipped checkpoints (decoder.i,
+        # decoder_norms.i, output); ``_decoder`` runs them and is a list so that nn.Module
+        # does not register the same layers twice.
+        self.decoder = nn.ModuleList([decoder.input, *decoder.hidden])
+        self.decoder_norms = decoder.norms
+        self.output = decoder.output
+        self._decoder = [decoder]
 
     def _check(self, name: str, x: Tensor, dim: int) -> None:
         if x.dim() != 2 or x.shape[1] != dim:
@@ -193,10 +179,7 @@ class MVAE(nn.Module):
         """The next frame (B, D) from a latent ``z`` (B, latent_dim) and the previous frame."""
         self._check("z", z, self.config.latent_dim)
         self._check("cond", cond, self.config.cond_dim)
-        h = cond
-        for layer, norm in zip(self.decoder, self.decoder_norms, strict=True):
-            h = norm(nn.functional.silu(layer(torch.cat([h, z], dim=-1))))  # (B, W)
-        return self.output(torch.cat([h, z], dim=-1))  # (B, D)
+        return self._decoder[0](cond, concat=z)  # (B, D)
 
     def forward(
         self, x: Tensor, cond: Tensor, generator: torch.Generator | None = None

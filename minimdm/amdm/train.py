@@ -27,9 +27,7 @@ step k + 1 as an uninterrupted one, bit for bit.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import json
-import math
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -39,10 +37,10 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from minimdm import config as configs
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
 from minimdm.checkpoint import (
     Checkpoint,
@@ -59,6 +57,8 @@ from minimdm.diffusion import (
     data_range,
     diffusion_loss,
 )
+from minimdm.nn import cosine_lr, ema_update, set_lr
+from minimdm.utils import num_threads as threads
 
 __all__ = [
     "TrainConfig",
@@ -150,14 +150,6 @@ class TrainConfig:
     """The YAML file this config came from (set by load_config; recorded in checkpoints)."""
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):  # YAML reads 5e-4 as a string and 30 as an int
-            v, kind = getattr(self, f.name), str(f.type).replace(" | None", "")
-            if v is None or kind not in ("int", "float"):
-                continue
-            try:
-                setattr(self, f.name, float(v) if kind == "float" else int(v))
-            except (TypeError, ValueError):
-                raise ValueError(f"{f.name} must be {f.type}, got {v!r}") from None
         if self.model_kind not in MODEL_KINDS:
             raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
         for name in ("width", "depth", "T", "batch_size", "total_steps", "rollout"):
@@ -187,19 +179,11 @@ _RESUMABLE_CHANGES = {
 
 
 def load_config(path: str | os.PathLike) -> TrainConfig:
-    """Read a YAML training config into a :class:`TrainConfig`; unknown keys are an error."""
-    path = Path(path)
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise ValueError(
-            f"{path} must hold a mapping of TrainConfig fields, got {type(data).__name__}"
-        )
-    names = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"{path}: unknown config keys {unknown}; valid keys are {sorted(names)}")
-    data.setdefault("config_file", path.as_posix())
-    return TrainConfig(**data)
+    """Read a YAML or TOML training config into a :class:`TrainConfig`.
+
+    Unknown keys are an error and values take the field types (:func:`minimdm.config.load_config`).
+    """
+    return configs.load_config(path, TrainConfig)
 
 
 def student_probability(config: TrainConfig, step: int) -> float:
@@ -215,9 +199,8 @@ def student_probability(config: TrainConfig, step: int) -> float:
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:
-    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps``."""
-    frac = min(step / max(config.total_steps - 1, 1), 1.0)
-    return config.lr_min + 0.5 * (config.lr - config.lr_min) * (1 + math.cos(math.pi * frac))
+    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps`` (``minimdm.nn.cosine_lr``)."""
+    return cosine_lr(step, config.total_steps, config.lr, config.lr_min)
 
 
 def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
@@ -358,15 +341,6 @@ class TrainResult:
     """The log records of this call (training loss, evaluations)."""
 
 
-@torch.no_grad()
-def _ema_update(ema: nn.Module, model: nn.Module, decay: float, step: int) -> None:
-    d = min(decay, (1 + step) / (10 + step))  # warm-up: average less early on
-    for pe, p in zip(ema.parameters(), model.parameters(), strict=True):
-        pe.lerp_(p, 1 - d)
-    for be, b in zip(ema.buffers(), model.buffers(), strict=True):
-        be.copy_(b)
-
-
 def _load_data(config: TrainConfig) -> dict[str, Any]:
     """Load the clips, encode them (A-MDM §3.1) and fit the normalizer: the real-data path."""
     from minimdm.motion import data, features
@@ -426,14 +400,9 @@ def train_amdm(
         metadata: extra JSON-able facts stored in the checkpoint, e.g. the ``command`` that
             reproduces it (the CLI records it).
     """
-    old_threads = torch.get_num_threads()
-    if num_threads is not None:
-        torch.set_num_threads(num_threads)
-    try:
+    with threads(num_threads):
         args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback, metadata)
         return _train(config, out_dir, features, *args)
-    finally:
-        torch.set_num_threads(old_threads)
 
 
 def _train(
@@ -561,8 +530,7 @@ def _train(
         running, n_running = 0.0, 0
         while step < config.total_steps:
             lr = learning_rate(config, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
+            set_lr(opt, lr)
             p = student_probability(config, step)
             B, W = config.batch_size, windows.shape[0]
             idx = torch.randint(W, (B,), generator=gen, device=device)
@@ -575,7 +543,7 @@ def _train(
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             opt.step()
             if ema is not None:
-                _ema_update(ema, model, config.ema_decay, step)
+                ema_update(ema, model, config.ema_decay, step)
             step += 1
             running, n_running = running + loss.item(), n_running + 1
             record = {"step": step, "loss": loss.item(), "p_student": p, "lr": lr, **info}

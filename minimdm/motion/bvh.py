@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import Clip, MotionDataset, _one_thread, resample_clip
+from minimdm.utils import num_threads
+
+from .data import Clip, MotionDataset, resample_clip
 from .skeleton import (
     Skeleton,
     axis_rotation,
@@ -298,7 +300,7 @@ def load_bvh(
     toe), the heading axis from a left/right joint pair such as the hips.
     """
     path = Path(path)
-    with _one_thread():
+    with num_threads(1):
         if not path.is_dir():
             return _load_one_bvh(path, fps, scale, path.stem)
         files = sorted(path.rglob("*.bvh"))

@@ -19,7 +19,6 @@ interpolation for the root position.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import math
@@ -29,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from minimdm.utils import num_threads
 
 from .skeleton import (
     Y_UP_TO_Z_UP,
@@ -72,17 +73,6 @@ _DEEPMIMIC_ORDER = [
     "left_hip", "left_knee", "left_ankle", "left_shoulder", "left_elbow",
 ]  # fmt: skip
 _DEEPMIMIC_WIDTH = 44
-
-
-@contextlib.contextmanager
-def _one_thread() -> Iterator[None]:
-    """Run torch on one thread: loading does many small ops, where threads only add latency."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 def _check_quats(q: np.ndarray, what: str, names: Sequence[str]) -> np.ndarray:
@@ -435,7 +425,7 @@ def load_clips(
     folder = pybullet_data_path() / "data" / "motions"
     skeleton = humanoid_skeleton()
     clips = []
-    with _one_thread():
+    with num_threads(1):  # many small ops: more threads only add latency
         for n in names or CLIP_NAMES:
             if n not in CLIP_NAMES:
                 raise ValueError(f"unknown clip {n!r}; expected one of {CLIP_NAMES}")

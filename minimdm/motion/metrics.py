@@ -311,16 +311,15 @@ def motion_metrics(
         x = _positions("samples", t.flatten(0, 1), batched=True)
         out = {"APD": sum(apd(x_c) for x_c in x.unflatten(0, t.shape[:2])) / t.shape[0]}
     elif t.dim() == 3:
-        if reference is not None:
-            raise ValueError("reference needs K samples, (K, F, J, 3)")
         x, out = _positions("samples", t, batched=False), {}
     else:
         x = _positions("samples", t, batched=True)
         out = {"APD": apd(x)}
     if reference is not None:
         ref = _positions("reference", reference, batched=False)
-        n = min(ade_frames, ref.shape[0], x.shape[1])
-        out["ADE"], out["FDE"] = ade_fde(x[:, :n], ref[:n])
+        xk = x if x.dim() == 4 else x[None]  # (K, F, J, 3)
+        n = min(ade_frames, ref.shape[0], xk.shape[1])
+        out["ADE"], out["FDE"] = ade_fde(xk[:, :n], ref[:n])
     out["FS"] = foot_sliding(x, foot_joints, height_threshold, foot_offset)
     out["Bone.Err"] = bone_length_error(x, parents, reference_lengths)
     out["Jnt.Accel"] = joint_acceleration(x)

@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.diffusion import NoiseSchedule, check_finite, diffusion_loss
+from minimdm.nn import cosine_lr, set_lr
 
 __all__ = [
     "Squ9",
@@ -263,6 +264,32 @@ def _batches(n: int, steps: int, batch_size: int, generator: torch.Generator | N
         yield torch.randint(0, n, (batch_size,), generator=generator, device=dev)
 
 
+def _fit(
+    model: nn.Module,
+    loss_fn,
+    n: int,
+    steps: int,
+    batch_size: int,
+    lr: float,
+    generator: torch.Generator | None,
+) -> list[float]:
+    """Adam with a cosine-decayed learning rate, ``loss_fn(idx)`` on ``steps`` batches of
+    indices into ``n`` pairs. Returns the loss of every step."""
+    device = next(model.parameters()).device
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    history = []
+    model.train()
+    for step, idx in enumerate(_batches(n, steps, batch_size, generator)):
+        set_lr(opt, cosine_lr(step, steps, lr))
+        loss = loss_fn(idx.to(device))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        history.append(loss.item())
+    model.eval()
+    return history
+
+
 def train_denoiser(
     model: nn.Module,
     schedule: NoiseSchedule,
@@ -281,21 +308,12 @@ def train_denoiser(
     """
     device = next(model.parameters()).device
     x_prev, x_next, schedule = x_prev.to(device), x_next.to(device), schedule.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
     predicts = getattr(model, "predicts", "eps")
-    history = []
-    model.train()
-    for idx in _batches(len(x_next), steps, batch_size, generator):
-        idx = idx.to(device)
-        loss, _ = diffusion_loss(model, schedule, x_next[idx], x_prev[idx], generator, predicts)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        history.append(loss.item())
-    model.eval()
-    return history
+
+    def loss_fn(idx: Tensor) -> Tensor:
+        return diffusion_loss(model, schedule, x_next[idx], x_prev[idx], generator, predicts)[0]
+
+    return _fit(model, loss_fn, len(x_next), steps, batch_size, lr, generator)
 
 
 def train_regressor(
@@ -310,17 +328,8 @@ def train_regressor(
     """Fit the deterministic baseline ``x_next ~ model(x_prev)`` with MSE (same loop as above)."""
     device = next(model.parameters()).device
     x_prev, x_next = x_prev.to(device), x_next.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
-    history = []
-    model.train()
-    for idx in _batches(len(x_next), steps, batch_size, generator):
-        idx = idx.to(device)
-        loss = ((model(x_prev[idx]) - x_next[idx]) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        history.append(loss.item())
-    model.eval()
-    return history
+
+    def loss_fn(idx: Tensor) -> Tensor:
+        return ((model(x_prev[idx]) - x_next[idx]) ** 2).mean()
+
+    return _fit(model, loss_fn, len(x_next), steps, batch_size, lr, generator)

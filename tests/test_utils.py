@@ -1,0 +1,116 @@
+"""minimdm.utils: the one table formatter and the one thread helper."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from minimdm.amdm.evaluation import TABLE1_COLUMNS
+from minimdm.studies.amdm_tables import read_results
+from minimdm.utils import format_table, num_threads
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results" / "amdm_tables.jsonl"
+
+
+def _cells(text: str) -> list[list[str]]:
+    """Split a table on runs of two or more spaces."""
+    import re
+
+    return [re.split(r" {2,}", line.strip()) for line in text.splitlines()]
+
+
+def test_format_table_cells_pairs_none_strings_and_numbers():
+    rows = {
+        "A-MDM": {"APD": (9.3347, 0.1579), "FS": 0.2981, "note": "ε model"},
+        "MSE": {"APD": None, "FS": 123.456, "steps": 3},
+    }
+    text = format_table(rows)
+    assert _cells(text) == [
+        ["model", "APD", "FS", "note", "steps"],
+        ["A-MDM", "9.33 ± 0.16", "0.30", "ε model", "-"],
+        ["MSE", "-", "123.5", "-", "3"],
+    ]
+    lines = text.splitlines()
+    assert len({len(line) for line in lines}) == 1  # fixed width
+    assert lines[1].startswith("A-MDM  ") and lines[1].endswith("-")  # names left, cells right
+    assert _cells(format_table(rows, ["FS"], digits=3))[1] == ["A-MDM", "0.298"]
+
+
+def test_format_table_takes_a_list_of_dicts_named_by_first():
+    rows = [{"method": "ddpm5", "NFE": 5, "precision": 0.42}, {"method": "aamdm", "NFE": 5}]
+    assert _cells(format_table(rows, first="method")) == [
+        ["method", "NFE", "precision"],
+        ["ddpm5", "5", "0.42"],
+        ["aamdm", "5", "-"],
+    ]
+    with pytest.raises(ValueError, match="at least one row"):
+        format_table({})
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.dictionaries(
+        st.text("abcxyz", min_size=1, max_size=6),
+        st.dictionaries(
+            st.sampled_from(["APD", "FS", "x"]),
+            st.one_of(
+                st.none(),
+                st.floats(-1e4, 1e4),
+                st.integers(-99, 99),
+                st.tuples(st.floats(0, 50), st.floats(0, 5)),
+            ),
+        ),
+        min_size=1,
+        max_size=4,
+    )
+)
+def test_format_table_lines_are_aligned(rows):
+    lines = format_table(rows).splitlines()
+    assert len(lines) == len(rows) + 1
+    assert len({len(line) for line in lines}) == 1
+
+
+@pytest.mark.skipif(not RESULTS.exists(), reason="no stored benchmark results")
+def test_chapter_4_tables_from_the_stored_rows():
+    """The rows of benchmarks/results print in the order of Table 1, ``mean ± std`` per cell."""
+    import json
+
+    records = [json.loads(line) for line in RESULTS.read_text().splitlines()]
+    rows = read_results(RESULTS, "table1")
+    cells = _cells(format_table(rows))
+    head = cells[0][1:]
+    assert head == [c for c in TABLE1_COLUMNS if c in head]  # the paper's column order
+    for line in cells[1:]:
+        rec = next(r for r in records if r["table"] == "table1" and r["model"] == line[0])
+        for col, cell in zip(head, line[1:], strict=True):
+            want = f"{rec[col]['mean']:.2f} ± {rec[col]['std']:.2f}" if col in rec else "-"
+            assert cell == want, (line[0], col)
+    with pytest.raises(ValueError, match="no rows of table 'table9'"):
+        read_results(RESULTS, "table9")
+
+
+def test_num_threads_sets_and_restores_even_on_errors():
+    before = torch.get_num_threads()
+    with num_threads(1):
+        assert torch.get_num_threads() == 1
+        with num_threads(None):  # leaves the count as it is
+            assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with num_threads(1):
+            raise RuntimeError("inside")
+    assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("n", [0, -1, 1.5, True, "2"])
+def test_num_threads_rejects_a_bad_count(n):
+    before = torch.get_num_threads()
+    with pytest.raises(ValueError, match="n must be an integer >= 1 or None"):
+        with num_threads(n):
+            pass
+    assert torch.get_num_threads() == before
