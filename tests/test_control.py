@@ -420,6 +420,11 @@ def test_inbetweening_lands_on_the_keyframe(walker):
     # measured over seeds 0-5: 1.8-2.2 cm (mean of 8 samples), 45 cm for random sampling
     assert err < 4.0, err
     assert err_free > 3 * err
+    # DDIM: each frame's chain starts at its t_0 and follows the DDIM grid below it
+    ddim = C.as_control_model(ck, steps=cm.schedule.T // 2, eta=1.0)
+    m = C.inbetween(ddim, start.expand(B, -1), key, N, torch.Generator().manual_seed(0))
+    err_ddim = (m.features[:, -1, pos] - key[pos]).unflatten(-1, (15, 3)).norm(dim=-1).mean() * 100
+    assert err_ddim < 4.0 and err_free > 3 * err_ddim, (err_ddim, err_free)
 
 
 # ------------------------------------------------------------------ the one rollout loop

@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.checkpoint import Checkpoint, load_checkpoint
-from minimdm.diffusion import Hook, NoiseSchedule, ddim_sample, ddpm_sample
+from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, ddim_sample, ddpm_sample
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode
 from minimdm.motion.skeleton import Skeleton
 from minimdm.utils import num_threads
@@ -104,7 +104,7 @@ def next_frame(
     steps: int | None = None,
     eta: float = 1.0,
     predicts: str = "eps",
-    clip_x0: float | None = None,
+    clip_x0: ClipX0 = None,
     hook: Hook | None = None,
     *,
     t_start: int | None = None,
@@ -116,7 +116,7 @@ def next_frame(
     steps when ``steps`` is None or T, else DDIM over ``steps`` of them with ``eta``
     (1: as stochastic as DDPM, 0: deterministic given the start noise). ``hook`` is passed to
     the sampler (inpainting, guidance...). ``t_start`` and ``x_start`` start the DDPM chain at
-    that level from that sample (keyframe inbetweening, A-MDM eq. 5); DDPM only.
+    that level from that sample (keyframe inbetweening, A-MDM eq. 5), with DDPM or DDIM.
     """
     if isinstance(model, MLPDenoiser):
         if schedule is None:
@@ -294,7 +294,7 @@ def rollout(
     *,
     start_pose: StartPose | dict | None = None,
     eta: float = 1.0,
-    clip_x0: float | None | str = "checkpoint",
+    clip_x0: ClipX0 | str = "checkpoint",
     normalizer: Normalizer | None = None,
     schedule: NoiseSchedule | None = None,
     decode_positions: bool = True,
@@ -315,7 +315,8 @@ def rollout(
         start_pose: root ground position ``xy`` (C, 2) and ``heading`` (C,) at the initial
             frame, where decoding starts (default: the origin, heading 0).
         eta: DDIM stochasticity when ``steps`` < T.
-        clip_x0: clamp the denoiser's clean estimate to [-clip_x0, clip_x0] (normalized units)
+        clip_x0: clamp the denoiser's clean estimate (normalized units): None, a float c for
+            [-c, c], or a per-feature range ``(lo, hi)`` (:func:`minimdm.diffusion.clip_bounds`)
             at every step; ``"checkpoint"``: the value the model was trained with (None for a
             bare network). With eps-prediction and few steps, the first reverse step divides by
             :math:`\\sqrt{\\bar\\alpha_T}` (tiny), so an unclamped estimate can blow up.

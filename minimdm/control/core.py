@@ -22,7 +22,7 @@ from torch import Tensor, nn
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.amdm.sampling import check_finite, next_frame, sampler_settings
 from minimdm.checkpoint import Checkpoint, load_checkpoint
-from minimdm.diffusion import Hook, NoiseSchedule
+from minimdm.diffusion import ClipX0, Hook, NoiseSchedule
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
 from minimdm.motion.skeleton import Skeleton
 
@@ -41,7 +41,7 @@ class ControlModel:
     """The denoiser's noise schedule (None for the baselines)."""
     predicts: str = "eps"
     """What the denoiser outputs: 'eps' or 'x0'."""
-    clip_x0: float | None = None
+    clip_x0: ClipX0 = None
     """Clamp of the clean estimate at every step (normalized units)."""
     steps: int | None = None
     """Denoising steps per frame (None: all T, DDPM; fewer: DDIM)."""
@@ -85,7 +85,7 @@ def as_control_model(
     normalizer: Normalizer | None = None,
     schedule: NoiseSchedule | None = None,
     predicts: str | None = None,
-    clip_x0: float | None | str = "checkpoint",
+    clip_x0: ClipX0 | str = "checkpoint",
     steps: int | None = None,
     eta: float = 1.0,
     noise: float | Tensor = 0.0,

@@ -198,7 +198,8 @@ def inbetween(
 
     Args:
         model: a loaded Checkpoint or anything :func:`as_control_model` takes; a diffusion
-            model sampled with DDPM (all T steps).
+            model, sampled with DDPM (all T steps) or with DDIM (``steps`` < T): a chain
+            that starts at level :math:`t_0` follows the DDIM grid below it.
         start: (D,) or (B, D) start state x_0, feature units.
         keyframe: (D,), (K, D) or (B, K, D) keyframes in feature units, e.g. a frame of another
             clip (:func:`~minimdm.control.targets.clip_frame`).
@@ -213,8 +214,6 @@ def inbetween(
     cm = as_control_model(model)
     if not cm.is_diffusion:
         raise ValueError(f"inbetweening needs a diffusion model, got {type(cm.net).__name__}")
-    if cm.steps is not None and cm.steps != cm.schedule.T:
-        raise ValueError(f"inbetweening needs DDPM sampling (steps=None), got steps={cm.steps}")
     n_frames = check_count("n_frames", n_frames)
     x0, batched = as_start(cm, start)
     B, D = x0.shape
