@@ -11,13 +11,13 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from minimdm.amdm.losses import window_loss
 from minimdm.amdm.train import (
     TrainConfig,
     checkpoint_clamp_share,
     checkpoint_training_frames,
     resolve_clip_x0,
     train_amdm,
-    window_loss,
 )
 from minimdm.checkpoint import load_checkpoint, save_checkpoint, update_metadata
 from minimdm.diffusion import clamp_share, clip_bounds

@@ -8,16 +8,10 @@ import torch
 from torch import nn
 
 from minimdm import checkpoint as ckpt_mod
+from minimdm.amdm.losses import make_windows, window_loss
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
-from minimdm.amdm.train import (
-    TrainConfig,
-    build_network,
-    load_config,
-    make_windows,
-    student_probability,
-    train_amdm,
-    window_loss,
-)
+from minimdm.amdm.train import train_amdm
+from minimdm.amdm.train_config import TrainConfig, build_network, load_config, student_probability
 from minimdm.checkpoint import (
     CheckpointMismatchError,
     load_checkpoint,

@@ -151,7 +151,7 @@ def train_aamdm_motion(
     ``model.train.safetensors``) when ``out_dir`` is given. Returns the model and a report of
     the training times and final losses.
     """
-    from minimdm.amdm.train import make_windows
+    from minimdm.amdm.losses import make_windows
 
     c = config
     log = print if progress else (lambda *a, **k: None)

@@ -22,6 +22,10 @@ The loop is deterministic: all its randomness (batches, noise levels, teacher/st
 comes from one :class:`torch.Generator` seeded by ``seed``, whose state is saved in every
 checkpoint with the optimizer and the EMA weights; a run resumed from step k performs the same
 step k + 1 as an uninterrupted one, bit for bit.
+
+The config is :class:`~minimdm.amdm.train_config.TrainConfig` (re-exported here with
+:func:`load_config` and :func:`student_probability`); the losses are in
+:mod:`minimdm.amdm.losses`; this module holds the loop.
 """
 
 from __future__ import annotations
@@ -40,8 +44,14 @@ import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
-from minimdm import config as configs
-from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.amdm.losses import make_windows, window_loss
+from minimdm.amdm.train_config import (
+    TrainConfig,
+    build_network,
+    learning_rate,
+    load_config,
+    student_probability,
+)
 from minimdm.checkpoint import (
     Checkpoint,
     checkpoint_paths,
@@ -52,273 +62,22 @@ from minimdm.checkpoint import (
 from minimdm.diffusion import (
     NoiseSchedule,
     clamp_share,
-    clamp_x0,
     clip_bounds,
     data_range,
-    diffusion_loss,
 )
-from minimdm.nn import cosine_lr, ema_update, set_lr
+from minimdm.nn import ema_update, set_lr
 from minimdm.utils import num_threads as threads
 
 __all__ = [
     "TrainConfig",
     "load_config",
     "student_probability",
-    "learning_rate",
-    "build_network",
-    "frame_loss",
-    "window_loss",
-    "make_windows",
     "train_amdm",
     "TrainResult",
     "resolve_clip_x0",
     "checkpoint_training_frames",
     "checkpoint_clamp_share",
 ]
-
-MODEL_KINDS = ("amdm", "mse", "mvae")
-
-
-@dataclass
-class TrainConfig:
-    """Everything that defines a training run; ``configs/*.yaml`` load into it."""
-
-    # ---- model
-    model_kind: str = "amdm"
-    """Which model: 'amdm' (diffusion), 'mse' (deterministic regressor) or 'mvae' (cond. VAE)."""
-    width: int = 512
-    """Hidden units per layer (A-MDM paper: 1024)."""
-    depth: int = 6
-    """Fully connected layers including the output layer (A-MDM paper: 10)."""
-    time_dim: int = 128
-    """Size of the sinusoidal diffusion-step embedding (amdm only)."""
-    latent_dim: int = 32
-    """Size of the MVAE latent z (mvae only)."""
-    # ---- diffusion
-    T: int = 40
-    """Number of diffusion steps (A-MDM paper: 40)."""
-    schedule: str = "cosine"
-    """Noise schedule: 'cosine' or 'linear'."""
-    predicts: str = "eps"
-    """What the denoiser outputs: 'eps' (A-MDM eq. 3) or 'x0'."""
-    # ---- optimisation
-    lr: float = 3e-4
-    """Adam learning rate at the start."""
-    lr_min: float = 3e-5
-    """Learning rate at the end of a cosine decay over total_steps (= lr: constant)."""
-    grad_clip: float = 1.0
-    """Clip the gradient norm to this value (0: no clipping)."""
-    batch_size: int = 128
-    """Windows per step."""
-    total_steps: int = 2000
-    """Optimizer steps in the whole run."""
-    kl_beta: float = 0.2
-    """Weight of the KL term per frame dimension (mvae only)."""
-    # ---- scheduled sampling (A-MDM §3.2, MVAE-style)
-    rollout: int = 4
-    """N_r: frames predicted per window, each conditioned on the previous one."""
-    teacher_steps: int = 500
-    """Steps of pure teacher forcing (student probability 0)."""
-    ramp_steps: int = 500
-    """Steps over which the student probability rises linearly from 0 to 1."""
-    clip_x0: float | str | None = "data"
-    """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
-    normalized training frames), a float c ([-c, c]), or None."""
-    # ---- EMA, evaluation, checkpoints
-    ema_decay: float = 0.999
-    """Decay of the exponential moving average of the weights (0: no EMA)."""
-    eval_interval: int = 500
-    """Run the evaluation every this many steps (0: only at the end)."""
-    eval_windows: int = 256
-    """Held-in windows of the teacher-forced evaluation loss."""
-    ckpt_interval: int = 500
-    """Write a resumable checkpoint every this many steps (0: only at the end)."""
-    log_interval: int = 50
-    """Append the running training loss to log.jsonl every this many steps."""
-    seed: int = 0
-    """Seeds the initial weights and every random draw of training."""
-    # ---- data
-    fps: float = 30.0
-    """Frame rate the clips are resampled to (A-MDM: 30 Hz)."""
-    clips: list[str] | None = None
-    """Names of the clips to train on (None: every humanoid clip of the data package)."""
-    loop_frames: int | None = 150
-    """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle)."""
-    device: str = "cpu"
-    """Where to train: 'cpu' or 'cuda'."""
-    config_file: str | None = None
-    """The YAML file this config came from (set by load_config; recorded in checkpoints)."""
-
-    def __post_init__(self) -> None:
-        if self.model_kind not in MODEL_KINDS:
-            raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
-        for name in ("width", "depth", "T", "batch_size", "total_steps", "rollout"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.depth < 2:
-            raise ValueError(f"depth must be >= 2, got {self.depth}")
-        if self.teacher_steps < 0 or self.ramp_steps < 0:
-            raise ValueError(
-                f"teacher_steps and ramp_steps must be >= 0, got {self.teacher_steps}, "
-                f"{self.ramp_steps}"
-            )
-        if not 0 <= self.ema_decay < 1:
-            raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
-
-
-# Fields that may change between a checkpoint and a resumed run.
-_RESUMABLE_CHANGES = {
-    "total_steps",
-    "eval_interval",
-    "eval_windows",
-    "ckpt_interval",
-    "log_interval",
-    "device",
-    "config_file",
-}
-
-
-def load_config(path: str | os.PathLike) -> TrainConfig:
-    """Read a YAML or TOML training config into a :class:`TrainConfig`.
-
-    Unknown keys are an error and values take the field types (:func:`minimdm.config.load_config`).
-    """
-    return configs.load_config(path, TrainConfig)
-
-
-def student_probability(config: TrainConfig, step: int) -> float:
-    """Probability of feeding the model's own prediction at ``step`` (0-based).
-
-    0 while ``step < teacher_steps``; then ``(step - teacher_steps) / ramp_steps`` up to 1.
-    """
-    if step < config.teacher_steps:
-        return 0.0
-    if config.ramp_steps == 0:
-        return 1.0
-    return min(1.0, (step - config.teacher_steps + 1) / config.ramp_steps)
-
-
-def learning_rate(config: TrainConfig, step: int) -> float:
-    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps`` (``minimdm.nn.cosine_lr``)."""
-    return cosine_lr(step, config.total_steps, config.lr, config.lr_min)
-
-
-def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
-    """The network of ``config.model_kind`` for frames of dimension ``x_dim``."""
-    if config.model_kind == "amdm":
-        dc = DenoiserConfig(
-            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts
-        )
-        return MLPDenoiser(dc)
-    if config.model_kind == "mse":
-        return MLPRegressor(x_dim, x_dim, config.width, config.depth)
-    return MVAE(MVAEConfig(x_dim, x_dim, config.latent_dim, config.width, config.depth))
-
-
-def frame_loss(
-    model: nn.Module,
-    x: Tensor,
-    cond: Tensor,
-    generator: torch.Generator | None,
-    kind: str = "amdm",
-    schedule: NoiseSchedule | None = None,
-    predicts: str = "eps",
-    kl_beta: float = 0.2,
-) -> tuple[Tensor, Tensor]:
-    """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
-
-    * amdm: the DDPM loss (A-MDM eq. 3); the prediction is :math:`\\hat x_0` at the drawn step.
-    * mse: :math:`\\|f(x_{f-1}) - x_f\\|^2 / D`; the prediction is :math:`f(x_{f-1})`.
-    * mvae: :math:`\\|\\hat x_f - x_f\\|^2 / D + \\beta\\,\\mathrm{KL}(q \\| \\mathcal N(0, I)) / D`
-      with :math:`q = q(z | x_f, x_{f-1})`, the β-ELBO; the prediction is the reconstruction
-      through the posterior.
-
-    Returns ``(loss (B,), prediction (B, D))``.
-    """
-    if kind == "amdm":
-        if schedule is None:
-            raise ValueError("schedule is required for kind='amdm'")
-        return diffusion_loss(model, schedule, x, cond, generator, predicts, reduce=False)
-    if kind == "mse":
-        pred = model(cond)
-        return ((pred - x) ** 2).mean(1), pred
-    if kind == "mvae":
-        pred, mu, logvar = model(x, cond, generator)
-        rec = ((pred - x) ** 2).mean(1)
-        kl = -0.5 * (1 + logvar - mu**2 - logvar.exp()).sum(1)  # (B,)
-        return rec + kl_beta * kl / x.shape[1], pred
-    raise ValueError(f"kind must be one of {MODEL_KINDS}, got {kind!r}")
-
-
-def window_loss(
-    model: nn.Module,
-    windows: Tensor,
-    p_student: float,
-    generator: torch.Generator | None,
-    kind: str = "amdm",
-    schedule: NoiseSchedule | None = None,
-    predicts: str = "eps",
-    kl_beta: float = 0.2,
-    clip_x0: Any = None,
-) -> tuple[Tensor, dict[str, float]]:
-    """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
-
-    Frame 0 of each window is the ground-truth start. Frame ``f >= 1`` is predicted from the
-    condition ``c_f``: ``c_1 = x_0``; for ``f > 1`` each sample takes its own previous
-    prediction ``\\hat x_{f-1}`` (detached) with probability ``p_student``, else the ground truth
-    ``x_{f-1}``; a fed-back prediction is clamped to ``clip_x0``: None, a float ``c``
-    (``[-c, c]``) or a per-feature range ``(lo, hi)`` (:func:`~minimdm.diffusion.clip_bounds`).
-
-    For A-MDM the prediction fed back is the reconstruction :math:`\\hat x_0` at the noise level
-    drawn for the loss, as in the paper. With eps-prediction it divides by
-    :math:`\\sqrt{\\bar\\alpha_t}`, which is tiny at the noisiest levels: the clamp keeps it
-    bounded, and x0-prediction avoids the division. Returns the mean
-    loss over frames and samples, and the fraction of student conditions used. With
-    ``p_student = 0`` all frames run as one batch.
-    """
-    if windows.dim() != 3 or windows.shape[1] < 2:
-        raise ValueError(
-            f"windows must have shape (B, N_r + 1 >= 2, D), got {tuple(windows.shape)}"
-        )
-    B, n1, D = windows.shape
-    bounds = clip_bounds(clip_x0, D, windows.device, windows.dtype)
-    kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
-    if p_student <= 0:
-        x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
-        cond = windows[:, :-1].reshape(B * (n1 - 1), D)
-        loss, _ = frame_loss(model, x, cond, generator, **kw)
-        return loss.mean(), {"student_frac": 0.0}
-    cond = windows[:, 0]  # (B, D)
-    losses, n_student = [], 0
-    for f in range(1, n1):
-        loss_f, pred = frame_loss(model, windows[:, f], cond, generator, **kw)
-        losses.append(loss_f)
-        if f + 1 < n1:
-            pred = pred.detach()
-            coin = torch.rand(B, generator=generator, device=windows.device) < p_student  # (B,)
-            pred = clamp_x0(pred, bounds)
-            n_student += int(coin.sum())
-            cond = torch.where(coin[:, None], pred, windows[:, f])
-    frac = n_student / (B * max(n1 - 2, 1))
-    return torch.stack(losses).mean(), {"student_frac": frac}
-
-
-def make_windows(features: Sequence[Tensor | np.ndarray], n: int) -> Tensor:
-    """Every window of ``n + 1`` consecutive frames of every clip, stacked: (W, n + 1, D).
-
-    Windows never cross clips (:class:`~minimdm.motion.features.WindowDataset`); clips shorter than
-    ``n + 1`` frames contribute none.
-    """
-    from minimdm.motion.features import WindowDataset
-
-    for i, a in enumerate(features):
-        a = torch.as_tensor(a)
-        if a.dim() != 2:
-            raise ValueError(f"features[{i}] must have shape (F, D), got {tuple(a.shape)}")
-        if not torch.isfinite(a).all():
-            raise ValueError(f"features[{i}] must be finite, but it holds NaN/Inf")
-    ds = WindowDataset(features, n)
-    return torch.stack([ds[i] for i in range(len(ds))])  # (W, n + 1, D)
 
 
 # --------------------------------------------------------------------------------------------
@@ -355,6 +114,18 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
         "layout": features.FeatureLayout.for_skeleton(clips.skeleton, config.fps),
         "clip_names": clips.names,
     }
+
+
+# Fields that may change between a checkpoint and a resumed run.
+_RESUMABLE_CHANGES = {
+    "total_steps",
+    "eval_interval",
+    "eval_windows",
+    "ckpt_interval",
+    "log_interval",
+    "device",
+    "config_file",
+}
 
 
 def _config_diff(a: dict, b: dict) -> list[str]:

@@ -185,7 +185,7 @@ class Squ9Study:
         self.models["mse"] = model.eval()
 
     def _train_mvae(self) -> None:
-        from minimdm.amdm.train import frame_loss
+        from minimdm.amdm.losses import frame_loss
 
         c = self.config
         self._net_seed()

@@ -1,0 +1,139 @@
+"""The training config of A-MDM and its baselines, and what follows from it alone."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from torch import nn
+
+from minimdm import config as configs
+from minimdm.amdm.losses import MODEL_KINDS
+from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.nn import cosine_lr
+
+__all__ = ["TrainConfig", "load_config", "student_probability", "learning_rate", "build_network"]
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run; ``configs/*.yaml`` load into it."""
+
+    # ---- model
+    model_kind: str = "amdm"
+    """Which model: 'amdm' (diffusion), 'mse' (deterministic regressor) or 'mvae' (cond. VAE)."""
+    width: int = 512
+    """Hidden units per layer (A-MDM paper: 1024)."""
+    depth: int = 6
+    """Fully connected layers including the output layer (A-MDM paper: 10)."""
+    time_dim: int = 128
+    """Size of the sinusoidal diffusion-step embedding (amdm only)."""
+    latent_dim: int = 32
+    """Size of the MVAE latent z (mvae only)."""
+    # ---- diffusion
+    T: int = 40
+    """Number of diffusion steps (A-MDM paper: 40)."""
+    schedule: str = "cosine"
+    """Noise schedule: 'cosine' or 'linear'."""
+    predicts: str = "eps"
+    """What the denoiser outputs: 'eps' (A-MDM eq. 3) or 'x0'."""
+    # ---- optimisation
+    lr: float = 3e-4
+    """Adam learning rate at the start."""
+    lr_min: float = 3e-5
+    """Learning rate at the end of a cosine decay over total_steps (= lr: constant)."""
+    grad_clip: float = 1.0
+    """Clip the gradient norm to this value (0: no clipping)."""
+    batch_size: int = 128
+    """Windows per step."""
+    total_steps: int = 2000
+    """Optimizer steps in the whole run."""
+    kl_beta: float = 0.2
+    """Weight of the KL term per frame dimension (mvae only)."""
+    # ---- scheduled sampling (A-MDM §3.2, MVAE-style)
+    rollout: int = 4
+    """N_r: frames predicted per window, each conditioned on the previous one."""
+    teacher_steps: int = 500
+    """Steps of pure teacher forcing (student probability 0)."""
+    ramp_steps: int = 500
+    """Steps over which the student probability rises linearly from 0 to 1."""
+    clip_x0: float | str | None = "data"
+    """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
+    normalized training frames), a float c ([-c, c]), or None."""
+    # ---- EMA, evaluation, checkpoints
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights (0: no EMA)."""
+    eval_interval: int = 500
+    """Run the evaluation every this many steps (0: only at the end)."""
+    eval_windows: int = 256
+    """Held-in windows of the teacher-forced evaluation loss."""
+    ckpt_interval: int = 500
+    """Write a resumable checkpoint every this many steps (0: only at the end)."""
+    log_interval: int = 50
+    """Append the running training loss to log.jsonl every this many steps."""
+    seed: int = 0
+    """Seeds the initial weights and every random draw of training."""
+    # ---- data
+    fps: float = 30.0
+    """Frame rate the clips are resampled to (A-MDM: 30 Hz)."""
+    clips: list[str] | None = None
+    """Names of the clips to train on (None: every humanoid clip of the data package)."""
+    loop_frames: int | None = 150
+    """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle)."""
+    device: str = "cpu"
+    """Where to train: 'cpu' or 'cuda'."""
+    config_file: str | None = None
+    """The YAML file this config came from (set by load_config; recorded in checkpoints)."""
+
+    def __post_init__(self) -> None:
+        if self.model_kind not in MODEL_KINDS:
+            raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
+        for name in ("width", "depth", "T", "batch_size", "total_steps", "rollout"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.depth < 2:
+            raise ValueError(f"depth must be >= 2, got {self.depth}")
+        if self.teacher_steps < 0 or self.ramp_steps < 0:
+            raise ValueError(
+                f"teacher_steps and ramp_steps must be >= 0, got {self.teacher_steps}, "
+                f"{self.ramp_steps}"
+            )
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
+
+
+def load_config(path: str | os.PathLike) -> TrainConfig:
+    """Read a YAML or TOML training config into a :class:`TrainConfig`.
+
+    Unknown keys are an error and values take the field types (:func:`minimdm.config.load_config`).
+    """
+    return configs.load_config(path, TrainConfig)
+
+
+def student_probability(config: TrainConfig, step: int) -> float:
+    """Probability of feeding the model's own prediction at ``step`` (0-based).
+
+    0 while ``step < teacher_steps``; then ``(step - teacher_steps) / ramp_steps`` up to 1.
+    """
+    if step < config.teacher_steps:
+        return 0.0
+    if config.ramp_steps == 0:
+        return 1.0
+    return min(1.0, (step - config.teacher_steps + 1) / config.ramp_steps)
+
+
+def learning_rate(config: TrainConfig, step: int) -> float:
+    """Cosine decay from ``lr`` to ``lr_min`` over ``total_steps`` (``minimdm.nn.cosine_lr``)."""
+    return cosine_lr(step, config.total_steps, config.lr, config.lr_min)
+
+
+def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
+    """The network of ``config.model_kind`` for frames of dimension ``x_dim``."""
+    if config.model_kind == "amdm":
+        dc = DenoiserConfig(
+            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts
+        )
+        return MLPDenoiser(dc)
+    if config.model_kind == "mse":
+        return MLPRegressor(x_dim, x_dim, config.width, config.depth)
+    return MVAE(MVAEConfig(x_dim, x_dim, config.latent_dim, config.width, config.depth))
