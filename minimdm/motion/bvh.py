@@ -1,13 +1,23 @@
 """BVH motion files, both ways: :func:`load_bvh` (a file or a folder) and :func:`save_bvh`.
 
 BVH files are y-up and, by convention, the rest pose faces +Z with +X on its left. They are
-mapped into the z-up world of minimdm (x forward, y left, see :mod:`minimdm.motion.skeleton`) by the
-cyclic permutation ``(X, Y, Z) -> (Z, X, Y)`` (:data:`BVH_TO_WORLD`); :func:`save_bvh` applies
-the inverse, so a saved clip faces +Z in the file. Clips come back as
-:class:`minimdm.motion.data.Clip`
-(resampled to 30 Hz by default); :mod:`minimdm.motion.data` re-exports ``BVHError``, ``load_bvh``
-and
-``save_bvh``.
+mapped into the z-up world of minimdm (x forward, y left, see :mod:`minimdm.motion.skeleton`)
+by the cyclic permutation ``(X, Y, Z) -> (Z, X, Y)`` (:data:`BVH_TO_WORLD`); :func:`save_bvh`
+applies the inverse, so a saved clip faces +Z in the file. Clips come back as
+:class:`minimdm.motion.data.Clip`, resampled to 30 Hz by default.
+
+Real files differ in ways the loader absorbs:
+
+* **a root on the floor** (Bandai-Namco's ``joint_Root``, Mixamo's armature) whose only child,
+  the hips, carries the path: such a root is folded into the hips (:func:`_fold_root`), so the
+  clip's root is the body's and the global path is kept;
+* **any channels**: 3 or 6 on any joint, in any order, with any rotation order;
+* **any units**: the scale is guessed from the body's standing size (:func:`_guess_scale`);
+  ``scale=`` wins;
+* **any frame rate** from :data:`MIN_FPS` to :data:`MAX_FPS`, resampled; UTF-8 with or without
+  a byte-order mark, or Latin-1.
+
+A malformed file raises :class:`BVHError` naming the file and the line.
 """
 
 from __future__ import annotations
@@ -24,7 +34,7 @@ import torch
 
 from minimdm.utils import num_threads
 
-from .data import Clip, MotionDataset, resample_clip
+from .data import Clip, MotionDataset, _n_samples, resample_clip
 from .skeleton import (
     Skeleton,
     axis_rotation,
@@ -95,7 +105,9 @@ def _parse_bvh(text: str, src: str):
     channels: list[list[str]] = []
 
     def joint(parent: int, root: bool) -> None:
-        name = take("a joint name", lambda w: w not in "{}")[0]
+        name, ln = take("a joint name", lambda w: w not in "{}")
+        if name in names:
+            raise BVHError(f"{src}:{ln}: joint name {name!r} is used twice; names must be unique")
         j = len(names)
         names.append(name)
         parents.append(parent)
@@ -226,16 +238,29 @@ def _guess_lateral_axis(names: list[str], parents: list[int], rest: np.ndarray) 
     return (0.0, 1.0, 0.0)
 
 
-def _load_one_bvh(path: Path, fps: float | None, scale: float | None, name: str) -> Clip:
+MIN_FPS, MAX_FPS = 1.0, 1000.0
+"""Frame rates a BVH file may declare (``1 / Frame Time``); outside them the file is refused."""
+MAX_FRAMES = 1_000_000
+"""The most frames a loaded clip may have after resampling (about 9 hours at 30 Hz)."""
+HUMAN_EXTENT = (1.2, 2.0)
+"""Metres: the typical vertical extent of a standing human's joints (ankles to head joint)."""
+
+
+def _read_text(path: Path) -> str:
+    """The file's text: UTF-8 (a byte-order mark is dropped), else Latin-1 (old exporters)."""
+    data = path.read_bytes()
+    if b"\x00" in data[:4096]:
+        raise BVHError(f"{path}: not a text file (it holds NUL bytes)")
     try:
-        text = path.read_text()
-    except UnicodeDecodeError as e:
-        raise BVHError(f"{path}: not a text file ({e})") from None
-    names, parents, offsets, channels, frame_time, motion = _parse_bvh(text, str(path))
-    F, J = motion.shape[0], len(names)
-    if F < 1:
-        raise BVHError(f"{path}: expected at least one frame")
-    trans = np.broadcast_to(offsets, (F, J, 3)).copy()  # (F, J, 3) local translations
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _local_transforms(channels, offsets, motion) -> tuple[np.ndarray, torch.Tensor]:
+    """Per-frame local translations (F, J, 3) and rotations (F, J, 3, 3), file units and axes."""
+    F, J = motion.shape[0], len(channels)
+    trans = np.broadcast_to(offsets, (F, J, 3)).copy()  # (F, J, 3)
     rot = torch.eye(3, dtype=_F64).repeat(F, J, 1, 1)  # (F, J, 3, 3)
     col = 0
     for j, chans in enumerate(channels):
@@ -252,20 +277,120 @@ def _load_one_bvh(path: Path, fps: float | None, scale: float | None, name: str)
                 for i, ax in enumerate(order):
                     rot[:, j] = rot[:, j] @ axis_rotation(ax, torch.from_numpy(ang[:, i]))
         col += len(chans)
+    return trans, rot
+
+
+def _fold_root(names, parents, channels, trans, rot):
+    """Fold a root whose one child has position channels into that child (lossless).
+
+    Some exporters (Bandai-Namco, Mixamo) put a ``joint_Root`` on the floor and let its child,
+    the hips, carry the body's path; in some Bandai-Namco takes the path is even split between
+    the two. The clip's root must be the hips: its position is the character's path. Composing
+    the root's transform into its only child, frame by frame, keeps every other joint exactly
+    where the file puts it. One level is folded, so that every take of a skeleton, a one-frame
+    take included, comes out with the same joints.
+    """
+    kept = list(range(len(names)))  # the file's joint index of each joint left
+    child = parents.index(0) if parents.count(0) == 1 else None
+    has_pos = child is not None and any(c in _POS for c in channels[child])
+    if len(names) > 1 and has_pos:
+        c = child  # BVH lists joints depth first: the root's one child is joint 1
+        R0, t0 = rot[:, 0], torch.from_numpy(trans[:, 0])  # (F, 3, 3), (F, 3)
+        tc = (R0 @ torch.from_numpy(trans[:, c])[..., None])[..., 0] + t0
+        rot[:, c] = R0 @ rot[:, c]
+        trans[:, c] = tc.numpy()
+        keep = [j for j in range(len(names)) if j != 0]
+        remap = {old: new for new, old in enumerate(keep)}
+        names = [names[j] for j in keep]
+        parents = [remap[parents[j]] if parents[j] > 0 else -1 for j in keep]
+        trans, rot, kept = trans[:, keep], rot[:, keep], [kept[j] for j in keep]
+    return names, parents, trans, rot, kept
+
+
+def _standing_extent(names, parents, trans, rot) -> float:
+    """Median over frames of the joints' vertical (file Y) extent, in file units."""
+    F = trans.shape[0]
+    idx = np.linspace(0, F - 1, min(F, 64)).round().astype(int)  # a sample of frames is enough
+    sk = Skeleton(names, parents, np.zeros((len(names), 3)))
+    pos = np.zeros((len(idx), len(names), 3))
+    glob = [None] * len(names)
+    R, t = rot[idx].numpy(), trans[idx]
+    for j, p in enumerate(sk.parents):
+        if p < 0:
+            glob[j] = R[:, j]
+            pos[:, j] = t[:, j]
+        else:
+            glob[j] = glob[p] @ R[:, j]
+            pos[:, j] = pos[:, p] + (glob[p] @ t[:, j][..., None])[..., 0]
+    return float(np.median(np.ptp(pos[..., 1], axis=1)))
+
+
+def _guess_scale(path: Path, extent: float) -> float:
+    """File units -> metres from the body's standing extent (:data:`HUMAN_EXTENT`).
+
+    A power of ten is preferred (centimetres, millimetres, metres, decimetres) when it makes
+    the body a human's size; other units (inches, CMU's) are scaled to the middle of the range.
+    """
+    lo, hi = HUMAN_EXTENT
+    if not math.isfinite(extent) or extent <= 0:
+        raise BVHError(
+            f"{path}: cannot guess the units: the joints have no vertical extent (all offsets "
+            "zero?); pass scale= (file units -> metres, e.g. 0.01 for centimetres)"
+        )
+    for s in (1.0, 0.01, 0.1, 0.001):
+        if lo <= extent * s <= hi:
+            return s
+    s = 0.5 * (lo + hi) / extent
+    if not 1e-5 <= s <= 1e3:
+        raise BVHError(
+            f"{path}: cannot guess the units: the body's vertical extent is {extent:.3g} file "
+            f"units, which would need a scale of {s:.3g}; pass scale= (file units -> metres)"
+        )
+    return s
+
+
+def _first_difference(a: Skeleton, b: Skeleton) -> str:
+    """The first joint where two skeletons' names or parents differ, in words."""
+    for i, (na, nb) in enumerate(zip(a.names, b.names, strict=False)):
+        if na != nb or a.parents[i] != b.parents[i]:
+            return f"joint {i} is {na!r} (parent {a.parents[i]}) vs {nb!r} (parent {b.parents[i]})"
+    return f"{len(a.names)} vs {len(b.names)} joints"
+
+
+def _load_one_bvh(path: Path, fps: float | None, scale: float | None, name: str) -> Clip:
+    names, parents, offsets, channels, frame_time, motion = _parse_bvh(_read_text(path), str(path))
+    if not MIN_FPS <= 1.0 / frame_time <= MAX_FPS:
+        raise BVHError(
+            f"{path}: Frame Time {frame_time:g} s means {1.0 / frame_time:.3g} frames per second; "
+            f"expected {MIN_FPS:g} to {MAX_FPS:g} (1 / Frame Time)"
+        )
+    F = motion.shape[0]
+    if F < 1:
+        raise BVHError(f"{path}: expected at least one frame")
+    if fps is not None and _n_samples((F - 1) * frame_time, fps) > MAX_FRAMES:
+        raise BVHError(
+            f"{path}: {F} frames of {frame_time:g} s resampled to {fps:g} Hz would make more "
+            f"than {MAX_FRAMES} frames"
+        )
+    trans, rot = _local_transforms(channels, offsets, motion)
+    names, parents, trans, rot, kept = _fold_root(names, parents, channels, trans, rot)
+    J = len(names)
     for j in range(1, J):
-        if np.ptp(trans[:, j], axis=0).max() > 1e-6 * max(1.0, np.abs(trans[:, j]).max()):
+        dev = np.abs(trans[:, j] - trans[:1, j]).max()
+        if dev > 1e-6 * max(1.0, np.abs(trans[:, j]).max()):
             warnings.warn(
-                f"{path}: joint {names[j]!r} has animated translation; using frame 0's",
+                f"{path}: joint {names[j]!r} has animated translation (it moves up to {dev:.3g} "
+                "file units from frame 0); only the root's translation is kept, frame 0's is "
+                "used for the others",
                 stacklevel=3,
             )
-    off_file = offsets.copy()
-    off_file[1:] = trans[0, 1:]
-    if scale is None:  # a body is about 1.7 m: pick the power of ten nearest that, at most 1
-        rest = Skeleton(names, parents, off_file).rest_positions()
-        extent = float(np.ptp(rest, axis=0).max())
-        scale = min(1.0, 10.0 ** round(math.log10(1.7 / extent))) if extent > 0 else 1.0
+    if scale is None:
+        scale = _guess_scale(path, _standing_extent(names, parents, trans, rot))
+    elif not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a finite number > 0 (file units -> metres), got {scale!r}")
     C = torch.tensor(BVH_TO_WORLD, dtype=_F64)
-    world_offsets = off_file @ BVH_TO_WORLD.T * scale
+    world_offsets = trans[0] @ BVH_TO_WORLD.T * scale
+    world_offsets[0] = offsets[kept[0]] @ BVH_TO_WORLD.T * scale  # the file's rest offset
     rest = Skeleton(names, parents, world_offsets).rest_positions()
     skeleton = Skeleton(
         names,
@@ -300,16 +425,24 @@ def load_bvh(
     toe), the heading axis from a left/right joint pair such as the hips.
     """
     path = Path(path)
-    with num_threads(1):
+    with num_threads(1):  # many small ops: threads only add latency
         if not path.is_dir():
             return _load_one_bvh(path, fps, scale, path.stem)
         files = sorted(path.rglob("*.bvh"))
         if not files:
             raise FileNotFoundError(f"no .bvh files under {path}")
         names = [f.relative_to(path).with_suffix("").as_posix() for f in files]
-        return MotionDataset(
-            [_load_one_bvh(f, fps, scale, n) for f, n in zip(files, names, strict=True)]
-        )
+        clips = [_load_one_bvh(f, fps, scale, n) for f, n in zip(files, names, strict=True)]
+        first = clips[0].skeleton
+        for f, c in zip(files[1:], clips[1:], strict=True):
+            sk = c.skeleton
+            if (sk.names, list(sk.parents)) != (first.names, list(first.parents)):
+                diff = _first_difference(first, sk)
+                raise BVHError(
+                    f"{path}: the files hold different skeletons, e.g. {files[0].name} and "
+                    f"{f.name} ({diff}); a folder must hold one skeleton (bone lengths may differ)"
+                )
+        return MotionDataset(clips)
 
 
 def save_bvh(path: str | Path, clip: Clip, scale: float = 1.0) -> None:

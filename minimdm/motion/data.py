@@ -23,7 +23,7 @@ import functools
 import json
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +106,8 @@ class Clip:
     """(F, J, 3) global joint positions, metres; computed by forward kinematics if None."""
     loop: bool = False
     """True when the source motion is a loop (DeepMimic ``"Loop": "wrap"``)."""
+    labels: dict[str, str] = field(default_factory=dict)
+    """What the clip shows, e.g. ``{"content": "walk", "style": "happy"}`` (empty if unknown)."""
 
     def __post_init__(self) -> None:
         J = len(self.skeleton)
@@ -165,6 +167,7 @@ class Clip:
             self.local_rot[s],
             self.positions[s],
             self.loop,
+            dict(self.labels),
         )
 
     def reorder(self, names: list[str]) -> Clip:
@@ -178,6 +181,7 @@ class Clip:
             self.local_rot[:, idx],
             self.positions[:, idx],
             self.loop,
+            dict(self.labels),
         )
 
     def __repr__(self) -> str:
@@ -274,7 +278,14 @@ def resample_clip(clip: Clip, fps: float = 30.0) -> Clip:
     """Resample a clip to ``fps`` (slerp for rotations, linear for the root position)."""
     if abs(clip.fps - fps) <= 1e-3 * fps:
         return Clip(
-            clip.name, fps, clip.skeleton, clip.root_pos, clip.local_rot, clip.positions, clip.loop
+            clip.name,
+            fps,
+            clip.skeleton,
+            clip.root_pos,
+            clip.local_rot,
+            clip.positions,
+            clip.loop,
+            dict(clip.labels),
         )
     times = torch.arange(clip.n_frames, dtype=_F64) / clip.fps
     n = _n_samples(clip.duration, fps)
@@ -285,7 +296,15 @@ def resample_clip(clip: Clip, fps: float = 30.0) -> Clip:
         torch.from_numpy(clip.local_rot).to(_F64),
         t,
     )
-    return Clip(clip.name, fps, clip.skeleton, r.numpy(), q.numpy(), loop=clip.loop)
+    return Clip(
+        clip.name,
+        fps,
+        clip.skeleton,
+        r.numpy(),
+        q.numpy(),
+        loop=clip.loop,
+        labels=dict(clip.labels),
+    )
 
 
 # --------------------------------------------------------------------------- DeepMimic

@@ -1,0 +1,98 @@
+"""The bundled Bandai-Namco corpus: unpacking, labels, the split by take, and bad input."""
+
+import json
+import shutil
+
+import pytest
+
+from minimdm.motion import corpora
+from minimdm.motion.bvh import BVHError, load_bvh
+
+
+@pytest.fixture(scope="module")
+def home(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    d = tmp_path_factory.mktemp("data")
+    mp.setenv("MINIMDM_DATA", str(d))
+    yield d
+    mp.undo()
+
+
+def test_unpacks_once_and_holds_every_take(home):
+    folder = corpora.corpus_path("bandai-namco-1")
+    assert folder == home / "bandai-namco-1"
+    assert len(list((folder / "data").glob("*.bvh"))) == 174
+    assert len(list((folder / "data").glob("*.json"))) == 174
+    assert (folder / "LICENSE").exists()
+    stamp = (folder / ".complete").stat().st_mtime_ns
+    assert corpora.corpus_path("bandai-namco-1") == folder  # no second extraction
+    assert (folder / ".complete").stat().st_mtime_ns == stamp
+
+
+def test_a_partial_extraction_is_replaced(tmp_path, monkeypatch):
+    monkeypatch.setenv("MINIMDM_DATA", str(tmp_path))
+    partial = tmp_path / "bandai-namco-1" / "data"
+    partial.mkdir(parents=True)
+    (partial / "dataset-1_walk_normal_001.bvh").write_text("HIER")  # torn, no .complete
+    folder = corpora.corpus_path("bandai-namco-1")
+    assert (folder / ".complete").exists()
+    assert (folder / "data" / "dataset-1_walk_normal_001.bvh").read_text().startswith("HIERARCHY")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp folder left
+
+
+def test_split_is_by_take_and_keeps_every_label_in_training(home):
+    split = corpora.corpus_split("bandai-namco-1")
+    train, test = set(split["train"]), set(split["test"])
+    assert not train & test
+    assert len(train | test) == 174 and 15 <= len(test) <= 30
+
+    def labels(names):
+        return {tuple(n.split("_")[1:3]) for n in names}
+
+    contents = {c for c, _ in labels(test)}
+    styles = {s for _, s in labels(test)}
+    assert {c for c, _ in labels(train)} >= contents  # no content is only in the test set
+    assert {s for _, s in labels(train)} >= styles
+    assert len(styles) == 15  # every style is tested
+
+
+def test_loaded_takes_carry_their_labels(home):
+    takes = ["dataset-1_walk_happy_001", "dataset-1_bow_old_001"]
+    ds = corpora.load_corpus("bandai-namco-1", takes=takes)
+    assert ds.names == sorted(takes)
+    assert ds["dataset-1_walk_happy_001"].labels == {"content": "walk", "style": "happy"}
+    assert ds["dataset-1_bow_old_001"].labels == {"content": "bow", "style": "old"}
+    walk = ds["dataset-1_walk_happy_001"]
+    assert walk.fps == 30.0 and len(walk.skeleton) == 21
+    # labels survive slicing and resampling
+    assert walk.slice(3, 10).labels == walk.labels
+
+
+def test_bad_names_and_labels(home, tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match=r"known corpora: \['bandai-namco-1'\]"):
+        corpora.load_corpus("lafan2")
+    with pytest.raises(ValueError, match="split must be"):
+        corpora.load_corpus(split="validation")
+    with pytest.raises(ValueError, match="are not in corpus"):
+        corpora.load_corpus(takes=["dataset-1_fly_normal_001"])
+    # a label file that contradicts its take's name is refused, naming both
+    src = corpora.corpus_path("bandai-namco-1")
+    fake = tmp_path / "bandai-namco-1"
+    shutil.copytree(src / "cfg", fake / "cfg")
+    (fake / "data").mkdir()
+    take = "dataset-1_walk_happy_001"
+    shutil.copy(src / "data" / f"{take}.bvh", fake / "data")
+    (fake / "data" / f"{take}.json").write_text(json.dumps({"content": 1, "style": 1}))
+    (fake / ".complete").write_text("")
+    monkeypatch.setenv("MINIMDM_DATA", str(tmp_path))
+    with pytest.raises(ValueError, match=r"'content': 'run'.*do not match.*walk_happy"):
+        corpora.load_corpus(takes=[take])
+
+
+def test_folder_with_mixed_skeletons_is_refused(home, tmp_path):
+    src = corpora.corpus_path("bandai-namco-1") / "data"
+    shutil.copy(src / "dataset-1_walk_normal_001.bvh", tmp_path / "a.bvh")
+    text = (src / "dataset-1_run_normal_001.bvh").read_text()
+    (tmp_path / "b.bvh").write_text(text.replace("JOINT Neck", "JOINT Throat"))
+    with pytest.raises(BVHError, match=r"a.bvh and b.bvh .*'Neck'.*'Throat'"):
+        load_bvh(tmp_path)
