@@ -66,14 +66,16 @@ class GeneratorConfig:
     """Random Fourier features of x_t and of cond, each, fed beside them (0: none)."""
     fourier_scale: float = 1.0
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
+    activation: str = "silu"
+    """'silu' or 'mish' (AAMDM Figure 4 uses Mish for every network); in every MLP of the net."""
 
 
 class DDGANGenerator(nn.Module):
     """:math:`G^{GAN}(x^t, x_{n-1}, r, t) \\to \\hat x^0` (AAMDM eq. 10).
 
-    The A-MDM body (SiLU then LayerNorm). The latent ``r`` enters with the input and, like the
-    level embedding, as a bias on every hidden layer, so that it cannot be ignored (the
-    style-modulation of DD-GAN's generator, reduced to an MLP).
+    The A-MDM body (activation, SiLU by default, then LayerNorm). The latent ``r`` enters with
+    the input and, like the level embedding, as a bias on every hidden layer, so that it cannot
+    be ignored (the style-modulation of DD-GAN's generator, reduced to an MLP).
     """
 
     def __init__(self, config: GeneratorConfig) -> None:
@@ -83,9 +85,10 @@ class DDGANGenerator(nn.Module):
                 f"depth must be >= 2 and latent_dim >= 1, got {config.depth}, {config.latent_dim}"
             )
         self.config = c = config
+        self.act = _activation("activation", c.activation, ("silu", "mish"))
         w = c.width
-        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), nn.SiLU(), nn.Linear(w, w))
-        self.latent_mlp = nn.Sequential(nn.Linear(c.latent_dim, w), nn.SiLU(), nn.Linear(w, w))
+        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), self.act, nn.Linear(w, w))
+        self.latent_mlp = nn.Sequential(nn.Linear(c.latent_dim, w), self.act, nn.Linear(w, w))
         self.x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 1)
         self.c_features = FourierFeatures(
             c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 2
@@ -107,9 +110,9 @@ class DDGANGenerator(nn.Module):
             parts.insert(1, self.c_features(cond))
         v = torch.cat(parts, dim=-1)  # (B, x + c + 4F + latent)
         e = self.time_mlp(timestep_embedding(t, c.time_dim)) + self.latent_mlp(r)  # (B, W)
-        h = self.norms[0](nn.functional.silu(self.input(v) + e))
+        h = self.norms[0](self.act(self.input(v) + e))
         for layer, norm in zip(self.hidden, self.norms[1:], strict=True):
-            h = norm(nn.functional.silu(layer(h) + e))
+            h = norm(self.act(layer(h) + e))
         return self.output(h)  # (B, D)
 
 
@@ -131,13 +134,16 @@ class DiscriminatorConfig:
     """Random Fourier features of x_{t-1}, x_t and cond, each, fed beside them (0: none)."""
     fourier_scale: float = 1.0
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
+    activation: str = "leaky_relu"
+    """Hidden layers: 'leaky_relu' (slope 0.2, the GAN habit; level MLP SiLU), 'silu' or 'mish'
+    (AAMDM Figure 4: Mish for every network, the level MLP included)."""
 
 
 class DDGANDiscriminator(nn.Module):
     """:math:`D^{GAN}(x^{t-1}, x^t, x_{n-1}, t)`: a logit, real pair vs generated pair (eq. 12).
 
-    An MLP with LeakyReLU(0.2) and no normalisation (the usual GAN discriminator), the level
-    embedding added to every hidden layer.
+    An MLP with LeakyReLU(0.2) by default and no normalisation (the usual GAN discriminator),
+    the level embedding added to every hidden layer.
     """
 
     def __init__(self, config: DiscriminatorConfig) -> None:
@@ -145,8 +151,10 @@ class DDGANDiscriminator(nn.Module):
         if config.depth < 2:
             raise ValueError(f"depth must be >= 2, got {config.depth}")
         self.config = c = config
+        self.act = _activation("activation", c.activation, ("leaky_relu", "silu", "mish"))
+        time_act = nn.SiLU() if c.activation == "leaky_relu" else self.act
         w = c.width
-        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), nn.SiLU(), nn.Linear(w, w))
+        self.time_mlp = nn.Sequential(nn.Linear(c.time_dim, w), time_act, nn.Linear(w, w))
         # one set of frequencies for x_{t-1} and x_t (the same space), one for the condition
         self.x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 3)
         self.c_features = FourierFeatures(
@@ -163,10 +171,18 @@ class DDGANDiscriminator(nn.Module):
         if c.cond_dim:
             parts.append(self.c_features(cond))
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
-        h = nn.functional.leaky_relu(self.input(torch.cat(parts, -1)) + e, 0.2)
+        h = self.act(self.input(torch.cat(parts, -1)) + e)
         for layer in self.hidden:
-            h = nn.functional.leaky_relu(layer(h) + e, 0.2)
+            h = self.act(layer(h) + e)
         return self.output(h)[:, 0]  # (B,)
+
+
+def _activation(name: str, value: str, allowed: tuple[str, ...]) -> nn.Module:
+    """The activation module called ``value``; a clear error for any other name."""
+    modules = {"silu": nn.SiLU, "mish": nn.Mish, "leaky_relu": lambda: nn.LeakyReLU(0.2)}
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+    return modules[value]()
 
 
 def _check_shape(name: str, x: Tensor | None, shape: tuple[int, ...]) -> None:
