@@ -30,6 +30,7 @@ the same lines to a file (chapter 8 reads ``benchmarks/results/squ9_aamdm_pairs.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -99,7 +100,8 @@ def pairs(args) -> None:
         cfg = replace(
             cfg, gan_steps=max(1, cfg.gan_steps // 10), polish_steps=max(1, cfg.polish_steps // 10)
         )
-    rows = compare_pairs(cfg, args.device, progress=True)
+    with contextlib.redirect_stdout(sys.stderr):  # progress on stderr, JSON on stdout
+        rows = compare_pairs(cfg, args.device, progress=True)
     hw = hardware(args.device)
     conf = {k: v for k, v in asdict(cfg).items() if k != "study"}
     conf["study"] = {k: v for k, v in asdict(cfg.study).items() if k not in ("gan", "polish")}

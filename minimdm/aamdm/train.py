@@ -454,6 +454,11 @@ def train_ddgan(
         raise ValueError(
             f"T_gan + T_adm must equal the schedule's T = {schedule.T}, got {T_gan} + {T_adm}"
         )
+    if config.pairs == "paper" and T_adm > 0 and polisher is None:
+        raise ValueError(
+            "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
+            f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
+        )
     device = next(gan.parameters()).device
     windows, schedule = windows.to(device), schedule.to(device)
     gen = torch.Generator(device).manual_seed(config.seed)
@@ -492,11 +497,6 @@ def train_ddgan(
         finally:
             gan.load_state_dict(raw)
 
-    if config.pairs == "paper" and T_adm > 0 and polisher is None:
-        raise ValueError(
-            "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
-            f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
-        )
     history: list[dict] = []
     gan.train()
     disc.train()

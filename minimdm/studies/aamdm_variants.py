@@ -22,7 +22,9 @@ so that the book's prose is computed from the numbers.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 from minimdm.aamdm.train import PAIRS
 from minimdm.motion.metrics import mean_std
@@ -35,6 +37,7 @@ __all__ = [
     "compare_pairs",
     "summarize",
     "describe",
+    "read_results",
 ]
 
 VARIANT_LABELS = {
@@ -188,3 +191,17 @@ def describe(summary: list[dict], a: str = "paper", b: str = "ddgan", digits: in
             verdict = f"{win} is better, beyond the seed spread"
         lines.append(f"{m} ({better} is better): {nums}; {verdict}.")
     return "\n".join(lines)
+
+
+def read_results(path: str | Path) -> tuple[list[dict], dict, dict]:
+    """The per-seed rows, the config and the hardware of a ``benchmarks/squ9_acceleration.py
+    --pairs --out PATH`` run (its ``"kind": "seed"`` lines), ready for :func:`summarize`."""
+    lines = [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()]
+    seeds = [x for x in lines if x.get("study") == "squ9_aamdm_pairs" and x.get("kind") == "seed"]
+    if not seeds:
+        raise ValueError(
+            f"{path} holds no squ9_aamdm_pairs seed lines; run the benchmark with --pairs"
+        )
+    drop = ("study", "kind", "config", "hardware")
+    rows = [{k: v for k, v in x.items() if k not in drop} for x in seeds]
+    return rows, seeds[0]["config"], seeds[0]["hardware"]
