@@ -26,8 +26,11 @@ paper's ``t + 1``)::
 * ``"paper"``: Algorithm 1 as written. The real pair forward-diffuses the **polisher's output**
   (line 20, then line 21), the fake :math:`x^{t-1}` forward-diffuses the **generator's**
   :math:`\\hat x^0` from clean, :math:`q(x^{t-1} | \\hat x^0)` (line 24), independently of
-  :math:`x^t`. (§3.3's prose says real pairs are "diffused from the original data"; the
-  algorithm says the polisher's output. We follow the algorithm.)
+  :math:`x^t`. The paper is not consistent here: §3.3's prose says real pairs are "diffused
+  from the original data", and eq. 12 takes the fake expectation over
+  :math:`p(x^{t-1} | x^t, x_{n-1})`, a step conditioned on :math:`x^t` as DD-GAN's posterior
+  draw is. ``"paper"`` follows the algorithm. The sampler
+  (:func:`~minimdm.aamdm.model.aamdm_sample`) steps through the posterior either way.
 * ``"ddgan"`` (the default, after Xiao et al. 2022, §3.3-3.4): real pairs forward-diffuse the
   **data**, and the fake :math:`x^{t-1}` is drawn from the **posterior**
   :math:`q(x^{t-1} | x^t, \\hat x^0)`, so the fake pair shares :math:`x^t` through the posterior
