@@ -218,7 +218,7 @@ def describe(summary: list[dict], a: str = "paper", b: str = "ddgan", digits: in
     lines = []
     for m, better in METRICS.items():
         (ma, sa), (mb, sb) = rows[a][m], rows[b][m]
-        nums = f"{ma:.{digits}f} ± {sa:.{digits}f} vs {mb:.{digits}f} ± {sb:.{digits}f}"
+        nums = f"{la} {ma:.{digits}f} ± {sa:.{digits}f}, {lb} {mb:.{digits}f} ± {sb:.{digits}f}"
         if abs(ma - mb) <= sa + sb:
             verdict = f"the intervals overlap, so {n} seeds cannot separate the two"
         else:
