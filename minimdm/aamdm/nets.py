@@ -67,14 +67,16 @@ class GeneratorConfig:
     """Random Fourier features of x_t and of cond, each, fed beside them (0: none)."""
     fourier_scale: float = 1.0
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
+    activation: str = "silu"
+    """'silu' or 'mish' (AAMDM Figure 4 uses Mish for every network); in every MLP of the net."""
 
 
 class DDGANGenerator(MLP):
     """:math:`G^{GAN}(x^t, x_{n-1}, r, t) \\to \\hat x^0` (AAMDM eq. 10).
 
-    The A-MDM body (an :class:`~minimdm.nn.MLP`). The latent ``r`` enters with the input and,
-    like the level embedding, as a bias on every hidden layer, so that it cannot be ignored (the
-    style-modulation of DD-GAN's generator, reduced to an MLP).
+    The A-MDM body (an :class:`~minimdm.nn.MLP`, SiLU by default). The latent ``r`` enters with
+    the input and, like the level embedding, as a bias on every hidden layer, so that it cannot
+    be ignored (the style-modulation of DD-GAN's generator, reduced to an MLP).
     """
 
     def __init__(self, config: GeneratorConfig) -> None:
@@ -83,12 +85,13 @@ class DDGANGenerator(MLP):
                 f"depth must be >= 2 and latent_dim >= 1, got {config.depth}, {config.latent_dim}"
             )
         c, w = config, config.width
-        time_mlp = MLP(c.time_dim, w, w, depth=2, norm=False).sequential()
-        latent_mlp = MLP(c.latent_dim, w, w, depth=2, norm=False).sequential()
+        act = _check_activation(c.activation, ("silu", "mish"))
+        time_mlp = MLP(c.time_dim, w, w, depth=2, activation=act, norm=False).sequential()
+        latent_mlp = MLP(c.latent_dim, w, w, depth=2, activation=act, norm=False).sequential()
         x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 1)
         c_features = FourierFeatures(c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 2)
         in_dim = x_features.out_dim + (c_features.out_dim if c.cond_dim else 0)
-        super().__init__(in_dim + c.latent_dim, c.x_dim, w, c.depth)
+        super().__init__(in_dim + c.latent_dim, c.x_dim, w, c.depth, activation=act)
         self.config = config
         self.time_mlp, self.latent_mlp = time_mlp, latent_mlp
         self.x_features, self.c_features = x_features, c_features
@@ -125,12 +128,15 @@ class DiscriminatorConfig:
     """Random Fourier features of x_{t-1}, x_t and cond, each, fed beside them (0: none)."""
     fourier_scale: float = 1.0
     """Standard deviation of the Fourier frequencies, in cycles per unit of the input."""
+    activation: str = "leaky_relu"
+    """Hidden layers: 'leaky_relu' (slope 0.2, the GAN habit; level MLP SiLU), 'silu' or 'mish'
+    (AAMDM Figure 4: Mish for every network, the level MLP included)."""
 
 
 class DDGANDiscriminator(MLP):
     """:math:`D^{GAN}(x^{t-1}, x^t, x_{n-1}, t)`: a logit, real pair vs generated pair (eq. 12).
 
-    An :class:`~minimdm.nn.MLP` with LeakyReLU(0.2) and no normalisation (the usual GAN
+    An :class:`~minimdm.nn.MLP` with LeakyReLU(0.2) by default and no normalisation (the usual GAN
     discriminator), the level embedding added to every hidden layer.
     """
 
@@ -138,12 +144,16 @@ class DDGANDiscriminator(MLP):
         if config.depth < 2:
             raise ValueError(f"depth must be >= 2, got {config.depth}")
         c, w = config, config.width
-        time_mlp = MLP(c.time_dim, w, w, depth=2, norm=False).sequential()
+        act = _check_activation(c.activation, ("leaky_relu", "silu", "mish"))
+        time_act = (
+            "silu" if act == "leaky_relu" else act
+        )  # the level MLP: SiLU, or the paper's Mish
+        time_mlp = MLP(c.time_dim, w, w, depth=2, activation=time_act, norm=False).sequential()
         # one set of frequencies for x_{t-1} and x_t (the same space), one for the condition
         x_features = FourierFeatures(c.x_dim, c.fourier, c.fourier_scale, 3)
         c_features = FourierFeatures(c.cond_dim, c.fourier if c.cond_dim else 0, c.fourier_scale, 4)
         in_dim = 2 * x_features.out_dim + (c_features.out_dim if c.cond_dim else 0)
-        super().__init__(in_dim, 1, w, c.depth, activation="leaky_relu", norm=False)
+        super().__init__(in_dim, 1, w, c.depth, activation=act, norm=False)
         self.config = config
         self.time_mlp = time_mlp
         self.x_features, self.c_features = x_features, c_features
@@ -155,6 +165,13 @@ class DDGANDiscriminator(MLP):
             parts.append(self.c_features(cond))
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
         return super().forward(torch.cat(parts, -1), add=e)[:, 0]  # (B,)
+
+
+def _check_activation(value: str, allowed: tuple[str, ...]) -> str:
+    """``value`` if it names an allowed activation, else a clear error."""
+    if value not in allowed:
+        raise ValueError(f"activation must be one of {allowed}, got {value!r}")
+    return value
 
 
 def _check_shape(name: str, x: Tensor | None, shape: tuple[int, ...]) -> None:

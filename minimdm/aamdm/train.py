@@ -13,6 +13,37 @@ uses the embedded vectors xz of ``h + 1`` consecutive frames.
   (Xiao et al. 2022, §3.3). The conditions are the polisher's rollout when a polisher is given
   (line 23), else the ground-truth previous frames.
 
+**Two pair constructions** (``GANConfig.pairs``, drawn by :func:`draw_gan_pairs`). Algorithm 1
+writes them as (line numbers of the paper's Algorithm 1; the library's level ``t`` is the
+paper's ``t + 1``)::
+
+    20: xz^{t,real}_{1:h} <- FD(x̂z^0_{1:h})        x̂z^0: the polisher's rollout, lines 8-15
+    21: xz^{t+1}_{1:h}    <- FD(xz^t_{1:h})         one forward step
+    22: r^{t+1} ~ N(0, I)
+    23: x̂z^0_k <- G^GAN(xz^{t+1}_k, x̂z^0_{k-1}, r^{t+1}, t+1)   for k in [1, h]
+    24: xz^{t,fake}_{1:h} <- FD(x̂z^0_{1:h})        x̂z^0: now the generator's
+
+* ``"paper"``: Algorithm 1 as written. The real pair forward-diffuses the **polisher's output**
+  (line 20, then line 21), the fake :math:`x^{t-1}` forward-diffuses the **generator's**
+  :math:`\\hat x^0` from clean, :math:`q(x^{t-1} | \\hat x^0)` (line 24), independently of
+  :math:`x^t`. The paper is not consistent here: §3.3's prose says real pairs are "diffused
+  from the original data", and eq. 12 takes the fake expectation over
+  :math:`p(x^{t-1} | x^t, x_{n-1})`, a step conditioned on :math:`x^t` as DD-GAN's posterior
+  draw is. ``"paper"`` follows the algorithm. The sampler
+  (:func:`~minimdm.aamdm.model.aamdm_sample`) steps through the posterior either way.
+* ``"ddgan"`` (the default, after Xiao et al. 2022, §3.3-3.4): real pairs forward-diffuse the
+  **data**, and the fake :math:`x^{t-1}` is drawn from the **posterior**
+  :math:`q(x^{t-1} | x^t, \\hat x^0)`, so the fake pair shares :math:`x^t` through the posterior
+  as the sampler does.
+
+Departures from the paper, each an option: ``GANConfig.r1_gamma`` (the paper names no R1
+penalty; DD-GAN uses one), ``optimizer`` (the paper trains every network with RAdam, §4
+"Implementation Details"; the default here is Adam), the activation of the networks
+(``activation`` of :class:`~minimdm.aamdm.nets.GeneratorConfig` and
+:class:`~minimdm.aamdm.nets.DiscriminatorConfig`; the paper's Figure 4 uses Mish everywhere), and
+the training order: Algorithm 1 updates the polisher and the GAN in one loop, the library trains
+the polisher first and then the GAN against the frozen polisher.
+
 GAN training can diverge. Every ``ckpt_interval`` steps the trainer writes a checkpoint with
 :func:`minimdm.checkpoint.save_checkpoint` (atomic), and a non-finite loss stops the run with a
 :class:`GANDivergedError` that names the step, the losses and the last good checkpoint, which is
@@ -24,6 +55,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -39,9 +71,13 @@ from minimdm.diffusion import NoiseSchedule, q_sample
 from minimdm.nn import cosine_lr, ema_update, set_lr
 
 __all__ = [
+    "PAIRS",
+    "OPTIMIZERS",
     "GANDivergedError",
     "PolishConfig",
     "GANConfig",
+    "GANPairs",
+    "draw_gan_pairs",
     "polisher_rollout",
     "polish_loss",
     "discriminator_loss",
@@ -50,6 +86,24 @@ __all__ = [
     "train_ddgan",
     "pairs_to_windows",
 ]
+
+
+PAIRS = ("ddgan", "paper")
+"""How real and fake pairs are made (see the module docstring): Xiao et al. or Algorithm 1."""
+OPTIMIZERS = ("adam", "radam")
+"""The optimizers a trainer can use (the paper: RAdam)."""
+
+
+def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def _optimizer(kind: str, params, lr: float, betas: tuple[float, float] = (0.9, 0.999)):
+    """Adam or RAdam (Liu et al. 2020, the paper's choice) with the same betas."""
+    _check_choice("optimizer", kind, OPTIMIZERS)
+    cls = torch.optim.RAdam if kind == "radam" else torch.optim.Adam
+    return cls(params, lr=lr, betas=betas)
 
 
 class GANDivergedError(FloatingPointError):
@@ -74,6 +128,11 @@ class PolishConfig:
     """Clip the gradient norm (0: no clipping)."""
     seed: int = 0
     """Seeds the batches and the noise."""
+    optimizer: str = "adam"
+    """'adam' or 'radam' (the paper: RAdam for every network, §4)."""
+
+    def __post_init__(self) -> None:
+        _check_choice("optimizer", self.optimizer, OPTIMIZERS)
 
 
 @dataclass
@@ -91,7 +150,7 @@ class GANConfig:
     lr_end: float = 0.1
     """Both learning rates decay (cosine) to this fraction of their start (1: constant)."""
     r1_gamma: float = 0.05
-    """Weight of the R1 penalty on real pairs (Xiao et al. 2022; 0: none)."""
+    """Weight of the R1 penalty on real pairs (Xiao et al. 2022; 0: none, as in the paper)."""
     grad_clip: float = 5.0
     """Clip the gradient norms (0: no clipping)."""
     ema_decay: float = 0.999
@@ -100,6 +159,16 @@ class GANConfig:
     """Write a checkpoint every this many steps when a path is given (0: only at the end)."""
     seed: int = 0
     """Seeds the batches, levels and noise."""
+    pairs: str = "ddgan"
+    """'ddgan' (data real pairs, posterior fakes; Xiao et al.) or 'paper' (Algorithm 1 lines
+    20-24: the polisher's output diffused for real pairs, the generator's x0 diffused for
+    fakes)."""
+    optimizer: str = "adam"
+    """'adam' or 'radam' (the paper: RAdam), both with betas 0.5 / 0.9."""
+
+    def __post_init__(self) -> None:
+        _check_choice("pairs", self.pairs, PAIRS)
+        _check_choice("optimizer", self.optimizer, OPTIMIZERS)
 
 
 def pairs_to_windows(x_prev: Tensor, x_next: Tensor) -> Tensor:
@@ -186,7 +255,7 @@ def train_polisher(
     device = next(polisher.parameters()).device
     windows, schedule = windows.to(device), schedule.to(device)
     gen = torch.Generator(device).manual_seed(config.seed)
-    opt = torch.optim.Adam(polisher.parameters(), lr=config.lr)
+    opt = _optimizer(config.optimizer, polisher.parameters(), config.lr)
     history = []
     polisher.train()
     for step in range(config.steps):
@@ -208,16 +277,91 @@ def train_polisher(
     return history
 
 
-def _draw_pairs(gan, schedule, x0, cond, T_gan, generator):
-    """Levels, real pairs and the generator's fake x_{t-1} for one batch (shared by D and G)."""
-    B, T = x0.shape[0], schedule.T
-    k = _levels(B, 0, T_gan, generator, x0.device)  # the GAN's own step index
+class GANPairs(NamedTuple):
+    """One batch of the DD-GAN game, every tensor flattened over windows and frames (B*h, ...)."""
+
+    k: Tensor
+    """(B*h,) the GAN's own step index; the level is ``t = k + T_adm``."""
+    cond: Tensor
+    """(B*h, C) the conditions x_{n-1} (the polisher's rollout or the data, line 23)."""
+    x0_real: Tensor
+    """(B*h, D) what the real pairs diffuse: the data ('ddgan') or the polisher's output."""
+    x_prev_real: Tensor
+    """(B*h, D) the real x^{t-1} (line 20)."""
+    x_t: Tensor
+    """(B*h, D) x^t, one forward step from the real x^{t-1} (line 21); the generator's input."""
+    x0_fake: Tensor
+    """(B*h, D) the generator's clean estimate (line 23)."""
+    x_prev_fake: Tensor
+    """(B*h, D) the fake x^{t-1}: posterior ('ddgan') or forward diffusion (line 24)."""
+
+
+def draw_gan_pairs(
+    gan: nn.Module,
+    schedule: NoiseSchedule,
+    windows: Tensor,
+    T_gan: int,
+    generator: torch.Generator | None = None,
+    pairs: str = "ddgan",
+    polisher: nn.Module | None = None,
+    T_adm: int | None = None,
+) -> GANPairs:
+    """Real and fake pairs for one batch of windows (B, h + 1, D), AAMDM Algorithm 1 lines 19-24.
+
+    ``pairs="paper"`` follows the algorithm as written:
+
+    * line 20, ``xz^{t,real}_{1:h} <- FD(x̂z^0_{1:h})``: the real :math:`x^{t-1}` is drawn from
+      :math:`q(x^{t-1} | \\hat x^0_{ADM})`, the forward diffusion of the **polisher's rollout**
+      of lines 8-15 (:func:`polisher_rollout`), not of the data;
+    * line 21, ``xz^{t+1}_{1:h} <- FD(xz^t_{1:h})``: :math:`x^t` one forward step from it;
+    * line 23, ``x̂z^0_k <- G^GAN(xz^{t+1}_k, x̂z^0_{k-1}, r^{t+1}, t+1) for k in [1, h]``: the
+      conditions are the polisher's rollout shifted by one frame, frame 0 the data (line 9; we
+      read the "for k" as one batched assignment whose right side is the rollout);
+    * line 24, ``xz^{t,fake}_{1:h} <- FD(x̂z^0_{1:h})``: the fake :math:`x^{t-1}` is drawn
+      from :math:`q(x^{t-1} | \\hat x^0_{GAN})`, the forward diffusion of the **generator's**
+      estimate, independently of :math:`x^t` given it.
+
+    With ``T_adm = 0`` there is no polisher, and the data stand in for its output.
+
+    ``pairs="ddgan"`` (Xiao et al. 2022) diffuses the data for the real pairs and draws the fake
+    :math:`x^{t-1} \\sim q(x^{t-1} | x^t, \\hat x^0_{GAN})` (the posterior, as the sampler
+    does); its conditions are the polisher's rollout when a polisher is given and h > 1, else
+    the data.
+
+    Levels are drawn uniformly over the GAN's ``T_gan`` levels of ``schedule`` (the top ones).
+    The rollout runs without gradients; the generator's output keeps its graph.
+    """
+    _check_choice("pairs", pairs, PAIRS)
+    T = schedule.T
+    T_adm = T - T_gan if T_adm is None else T_adm
+    if pairs == "paper" and T_adm > 0 and polisher is None:
+        raise ValueError(
+            "pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass the "
+            f"trained polisher (T_adm = {T_adm}), or use pairs='ddgan'"
+        )
+    B, n1, D = windows.shape
+    roll = None
+    if polisher is not None and T_adm > 0 and (pairs == "paper" or n1 > 2):
+        with torch.no_grad():
+            polisher.eval()
+            roll = polisher_rollout(polisher, schedule, windows, T_adm, generator)  # (B, h, D)
+    if roll is not None:
+        cond = torch.cat([windows[:, :1], roll[:, :-1]], dim=1)  # (B, h, D)
+    else:
+        cond = windows[:, :-1]
+    x0 = roll if pairs == "paper" and roll is not None else windows[:, 1:]
+    x0 = x0.reshape(B * (n1 - 1), D)
+    cond = cond.reshape(B * (n1 - 1), -1)
+    k = _levels(x0.shape[0], 0, T_gan, generator, x0.device)  # the GAN's own step index
     t = k + (T - T_gan)
-    x_prev_real, x_t = q_sample_pairs(schedule, x0, t, generator)
-    r = torch.randn((B, gan.config.latent_dim), generator=generator, device=x0.device)
-    x0_fake = gan(x_t, k, cond, r)
-    x_prev_fake = q_posterior_sample(schedule, x0_fake, x_t, t, generator)
-    return k, x_prev_real, x_t, x_prev_fake
+    x_prev_real, x_t = q_sample_pairs(schedule, x0, t, generator)  # lines 20-21
+    r = torch.randn((x0.shape[0], gan.config.latent_dim), generator=generator, device=x0.device)
+    x0_fake = gan(x_t, k, cond, r)  # lines 22-23
+    if pairs == "paper":
+        x_prev_fake = q_sample(schedule, x0_fake, t - 1, generator=generator)  # line 24
+    else:
+        x_prev_fake = q_posterior_sample(schedule, x0_fake, x_t, t, generator)
+    return GANPairs(k, cond, x0, x_prev_real, x_t, x0_fake, x_prev_fake)
 
 
 def discriminator_loss(
@@ -280,7 +424,9 @@ def train_ddgan(
         gan, disc: the generator (trained) and discriminator.
         schedule: the full ``T_gan + T_adm`` schedule; the GAN owns its top ``T_gan`` levels.
         polisher: if given (and ``T_adm`` > 0), the conditions are its rollout along each window
-            (Algorithm 1 line 23), else the ground-truth previous frames.
+            (Algorithm 1 line 23), else the ground-truth previous frames. ``config.pairs =
+            "paper"`` needs it: the real pairs diffuse its output (line 20; see
+            :func:`draw_gan_pairs`).
         checkpoint: a folder or stem; ``bundle`` (the module holding ``gan``, default ``gan``)
             is saved there every ``config.ckpt_interval`` steps and at the end, with the
             discriminator and optimizers as training state. With ``resume`` a run continues
@@ -305,11 +451,16 @@ def train_ddgan(
         raise ValueError(
             f"T_gan + T_adm must equal the schedule's T = {schedule.T}, got {T_gan} + {T_adm}"
         )
+    if config.pairs == "paper" and T_adm > 0 and polisher is None:
+        raise ValueError(
+            "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
+            f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
+        )
     device = next(gan.parameters()).device
     windows, schedule = windows.to(device), schedule.to(device)
     gen = torch.Generator(device).manual_seed(config.seed)
-    opt_g = torch.optim.Adam(gan.parameters(), lr=config.lr_g, betas=(0.5, 0.9))
-    opt_d = torch.optim.Adam(disc.parameters(), lr=config.lr_d, betas=(0.5, 0.9))
+    opt_g = _optimizer(config.optimizer, gan.parameters(), config.lr_g, (0.5, 0.9))
+    opt_d = _optimizer(config.optimizer, disc.parameters(), config.lr_d, (0.5, 0.9))
     bundle = bundle if bundle is not None else gan
     step, last_good = 0, None
     ema = {k: v.detach().clone() for k, v in gan.state_dict().items()}
@@ -343,7 +494,6 @@ def train_ddgan(
         finally:
             gan.load_state_dict(raw)
 
-    use_rollout = polisher is not None and T_adm > 0 and windows.shape[1] > 2
     history: list[dict] = []
     gan.train()
     disc.train()
@@ -352,17 +502,8 @@ def train_ddgan(
         for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
             set_lr(opt, cosine_lr(step, config.steps, lr, lr * config.lr_end))
         w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
-        B, n1, D = w.shape
-        if use_rollout:
-            with torch.no_grad():
-                polisher.eval()
-                roll = polisher_rollout(polisher, schedule, w, T_adm, gen)  # (B, h, D)
-            cond = torch.cat([w[:, :1], roll[:, :-1]], dim=1)
-        else:
-            cond = w[:, :-1]
-        x0 = w[:, 1:].reshape(B * (n1 - 1), D)
-        cond = cond.reshape(B * (n1 - 1), -1)
-        k, x_prev_real, x_t, x_prev_fake = _draw_pairs(gan, schedule, x0, cond, T_gan, gen)
+        p = draw_gan_pairs(gan, schedule, w, T_gan, gen, config.pairs, polisher, T_adm)
+        k, cond, x_prev_real, x_t, x_prev_fake = p.k, p.cond, p.x_prev_real, p.x_t, p.x_prev_fake
         loss_d, info = discriminator_loss(
             disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
         )

@@ -256,16 +256,27 @@ class Squ9Study:
         train_polisher(model.polisher, sched, self.sequences, model.T_adm, self.config.polish)
         return time.perf_counter() - t0
 
-    def train_generator(self, model: AAMDM) -> float:
-        """Fit ``model.generator`` against a new discriminator on the pairs; returns seconds."""
+    def train_generator(
+        self, model: AAMDM, gan: GANConfig | None = None, disc_activation: str = "leaky_relu"
+    ) -> float:
+        """Fit ``model.generator`` against a new discriminator on the pairs; returns seconds.
+
+        ``gan`` overrides ``config.gan`` (e.g. ``pairs="paper"``, which diffuses the output of
+        ``model.polisher``: train that first); ``disc_activation`` is the discriminator's.
+        """
         c = self.config
+        gan = gan or c.gan
         self._net_seed()
-        disc = DDGANDiscriminator(DiscriminatorConfig(2, 2, c.width, 3, 32, fourier=c.fourier)).to(
-            self.device
+        disc_cfg = DiscriminatorConfig(
+            2, 2, c.width, 3, 32, fourier=c.fourier, activation=disc_activation
         )
+        disc = DDGANDiscriminator(disc_cfg).to(self.device)
         t0 = time.perf_counter()
         windows = pairs_to_windows(self.x_prev, self.x_next)
-        train_ddgan(model.generator, disc, model.schedule(), windows, model.T_gan, c.gan)
+        train_ddgan(
+            model.generator, disc, model.schedule(), windows, model.T_gan, gan,
+            polisher=model.polisher,
+        )  # fmt: skip
         self.discriminators[f"T_gan={model.T_gan}"] = disc
         return time.perf_counter() - t0
 
@@ -368,6 +379,7 @@ class Squ9Study:
                 if progress:
                     print(f"training the generator for T_gan = {T_gan} ...", flush=True)
                 m = self.build_aamdm(T_gan, 2)
+                m.polisher.load_state_dict(main.polisher.state_dict())  # for pairs="paper"
                 trained[(T_gan, 2)] = self.train_generator(m)
                 self.generators[T_gan] = m.generator.eval()
         for T_adm in T_adms:
