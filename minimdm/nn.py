@@ -14,12 +14,12 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, MutableMapping
+from collections.abc import Callable, MutableMapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
-__all__ = ["ACTIVATIONS", "MLP", "ema_update", "cosine_lr", "set_lr"]
+__all__ = ["ACTIVATIONS", "MLP", "ema_update", "cosine_lr", "set_lr", "optimizer_step"]
 
 ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
     "silu": nn.SiLU,  # A-MDM
@@ -167,3 +167,23 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Set the learning rate of every parameter group of ``optimizer``."""
     for group in optimizer.param_groups:
         group["lr"] = lr
+
+
+def optimizer_step(
+    optimizer: torch.optim.Optimizer,
+    loss: Tensor,
+    parameters: Sequence[nn.Parameter],
+    grad_clip: float = 0.0,
+    only_these: bool = False,
+) -> None:
+    """One gradient step: clear the gradients, back-propagate ``loss``, clip, step.
+
+    ``parameters`` are those ``optimizer`` updates; ``grad_clip > 0`` clips their gradients'
+    global norm. ``only_these`` back-propagates into them alone (a GAN's generator step must
+    not leave gradients on the discriminator).
+    """
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward(inputs=list(parameters) if only_these else None)
+    if grad_clip > 0:
+        nn.utils.clip_grad_norm_(parameters, grad_clip)
+    optimizer.step()

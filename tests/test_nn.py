@@ -13,8 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from minimdm.amdm.train import TrainConfig, learning_rate
-from minimdm.nn import ACTIVATIONS, MLP, cosine_lr, ema_update, set_lr
+from minimdm.amdm.train_config import TrainConfig, learning_rate
+from minimdm.nn import ACTIVATIONS, MLP, cosine_lr, ema_update, optimizer_step, set_lr
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -208,3 +208,26 @@ def test_cosine_lr_is_the_trainers_schedule_and_rejects_bad_lengths():
     )
     set_lr(opt, 0.123)
     assert [g["lr"] for g in opt.param_groups] == [0.123, 0.123]
+
+
+def test_optimizer_step_is_zero_backward_clip_step():
+    torch.manual_seed(0)
+    a, b = nn.Linear(3, 3), nn.Linear(3, 1)
+    x = torch.randn(8, 3)
+    ref = copy.deepcopy(a)
+    opt_ref = torch.optim.SGD(ref.parameters(), lr=0.1)
+    opt = torch.optim.SGD(a.parameters(), lr=0.1)
+    for _ in range(3):  # written out: zero, backward, clip to norm 0.01, step
+        loss_ref = (b(ref(x)) ** 2).mean()
+        opt_ref.zero_grad(set_to_none=True)
+        loss_ref.backward()
+        nn.utils.clip_grad_norm_(ref.parameters(), 0.01)
+        opt_ref.step()
+        b.zero_grad(set_to_none=True)
+        optimizer_step(opt, (b(a(x)) ** 2).mean(), list(a.parameters()), grad_clip=0.01)
+    for p, q in zip(a.parameters(), ref.parameters(), strict=True):
+        assert torch.equal(p, q)
+    assert b.weight.grad is not None  # a plain backward reaches every parameter of the graph
+    b.zero_grad(set_to_none=True)
+    optimizer_step(opt, (b(a(x)) ** 2).mean(), list(a.parameters()), only_these=True)
+    assert b.weight.grad is None  # a generator's step leaves the discriminator alone

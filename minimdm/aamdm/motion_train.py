@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from minimdm import config as configs
 from minimdm.aamdm.model import AAMDMConfig, DDGANDiscriminator, DiscriminatorConfig
@@ -31,7 +31,7 @@ from minimdm.aamdm.motion import (
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
 from minimdm.diffusion import data_range
-from minimdm.nn import cosine_lr, set_lr
+from minimdm.nn import cosine_lr, optimizer_step, set_lr
 from minimdm.utils import num_threads
 
 __all__ = [
@@ -192,10 +192,7 @@ def train_aamdm_motion(
         loss, info = autoencoder_loss(
             ae, y_pairs[idx], x_pairs[idx], norm.denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
         )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(ae.parameters(), 1.0)
-        opt.step()
+        optimizer_step(opt, loss, list(ae.parameters()), grad_clip=1.0)
         if (step + 1) % 500 == 0:
             log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
     report["autoencoder_s"] = time.perf_counter() - t0

@@ -68,7 +68,7 @@ from minimdm.aamdm.model import (
 )
 from minimdm.checkpoint import checkpoint_paths, load_train_state, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, q_sample
-from minimdm.nn import cosine_lr, ema_update, set_lr
+from minimdm.nn import cosine_lr, ema_update, optimizer_step, set_lr
 
 __all__ = [
     "PAIRS",
@@ -267,11 +267,7 @@ def train_polisher(
         loss, info = polish_loss(x0_hat, w, config.w_vel, vel_dims)
         if not torch.isfinite(loss):
             raise FloatingPointError(f"polisher loss became {loss.item()} at step {step}")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        if config.grad_clip > 0:
-            nn.utils.clip_grad_norm_(polisher.parameters(), config.grad_clip)
-        opt.step()
+        optimizer_step(opt, loss, list(polisher.parameters()), config.grad_clip)
         history.append({"step": step + 1, "loss": loss.item(), **info})
     polisher.eval()
     return history
@@ -508,11 +504,7 @@ def train_ddgan(
             disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
         )
         if torch.isfinite(loss_d):  # alternate: step D, then G against the updated D
-            opt_d.zero_grad(set_to_none=True)
-            loss_d.backward()
-            if config.grad_clip > 0:
-                nn.utils.clip_grad_norm_(disc.parameters(), config.grad_clip)
-            opt_d.step()
+            optimizer_step(opt_d, loss_d, list(disc.parameters()), config.grad_clip)
             loss_g = generator_loss(disc, x_prev_fake, x_t, cond, k)
         else:
             loss_g = torch.full((), float("nan"))
@@ -528,11 +520,7 @@ def train_ddgan(
                 f"DD-GAN training diverged at step {step + 1}: loss_D = {loss_d.item()}, "
                 f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
             )
-        opt_g.zero_grad(set_to_none=True)
-        loss_g.backward(inputs=list(gan.parameters()))
-        if config.grad_clip > 0:
-            nn.utils.clip_grad_norm_(gan.parameters(), config.grad_clip)
-        opt_g.step()
+        optimizer_step(opt_g, loss_g, list(gan.parameters()), config.grad_clip, only_these=True)
         ema_update(ema, gan, config.ema_decay, step)
         step += 1
         record = {"step": step, **info, "seconds": time.perf_counter() - t0}

@@ -65,7 +65,7 @@ from minimdm.diffusion import (
     clip_bounds,
     data_range,
 )
-from minimdm.nn import ema_update, set_lr
+from minimdm.nn import ema_update, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
 
 __all__ = [
@@ -207,7 +207,8 @@ def _train(
     ema = copy.deepcopy(model).eval() if config.ema_decay > 0 else None
     for p in ema.parameters() if ema is not None else ():
         p.requires_grad_(False)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=config.lr)
     gen = torch.Generator(device=device).manual_seed(config.seed)
     step = 0
 
@@ -308,11 +309,7 @@ def _train(
             loss, info = window_loss(model, windows[idx], p, gen, **loss_kw)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if config.grad_clip > 0:
-                nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
-            opt.step()
+            optimizer_step(opt, loss, params, config.grad_clip)
             if ema is not None:
                 ema_update(ema, model, config.ema_decay, step)
             step += 1

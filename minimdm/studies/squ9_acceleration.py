@@ -54,6 +54,7 @@ from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor,
 from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, data_range, ddpm_sample
+from minimdm.nn import optimizer_step
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser, train_regressor
 
 __all__ = ["METHODS", "PANELS", "LABELS", "Squ9StudyConfig", "Squ9Study", "with_budget"]
@@ -199,9 +200,7 @@ class Squ9Study:
             for _ in range(c.baseline_steps):
                 idx = torch.randint(0, len(xn), (c.batch_size,), generator=g, device=self.device)
                 loss, _ = frame_loss(model, xn[idx], xp[idx], g, "mvae", kl_beta=c.mvae_beta)
-                opt.zero_grad(set_to_none=True)
-                loss.mean().backward()
-                opt.step()
+                optimizer_step(opt, loss.mean(), list(model.parameters()))
                 sched.step()
 
         self._timed("mvae", fit)

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.diffusion import NoiseSchedule, check_finite, diffusion_loss
-from minimdm.nn import cosine_lr, set_lr
+from minimdm.nn import cosine_lr, optimizer_step, set_lr
 
 __all__ = [
     "Squ9",
@@ -276,15 +276,14 @@ def _fit(
     """Adam with a cosine-decayed learning rate, ``loss_fn(idx)`` on ``steps`` batches of
     indices into ``n`` pairs. Returns the loss of every step."""
     device = next(model.parameters()).device
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    params = list(model.parameters())
+    opt = torch.optim.Adam(params, lr=lr)
     history = []
     model.train()
     for step, idx in enumerate(_batches(n, steps, batch_size, generator)):
         set_lr(opt, cosine_lr(step, steps, lr))
         loss = loss_fn(idx.to(device))
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        optimizer_step(opt, loss, params)
         history.append(loss.item())
     model.eval()
     return history
