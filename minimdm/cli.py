@@ -5,11 +5,15 @@
     minimdm train configs/amdm_book.yaml                 # -> checkpoints/amdm_book/
     minimdm sample --checkpoint checkpoints/amdm_book --frames 300 --out walk.gif
     minimdm eval --checkpoint checkpoints/amdm_book --json
+    minimdm data list                                    # known corpora, licences, present?
+    minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
 
 ``train`` resumes from the output folder's training state when there is one, so an
 interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
 ``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
-``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3.
+``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``data download`` fetches a corpus
+(resuming an interrupted download), checks it and unpacks it into the data folder
+(:func:`minimdm.motion.corpora.data_home`).
 """
 
 from __future__ import annotations
@@ -166,6 +170,25 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_data_list(args: argparse.Namespace) -> int:
+    from minimdm.motion.corpora import data_home, list_corpora
+
+    rows = list_corpora()
+    widths = {k: max(len(k), *(len(r[k]) for r in rows)) for k in rows[0]}
+    for r in [dict(zip(widths, widths)), *rows]:  # a header row, then one row per corpus
+        print("  ".join(r[k].ljust(w) for k, w in widths.items()).rstrip())
+    print(f"data folder: {data_home()}")
+    return 0
+
+
+def _cmd_data_download(args: argparse.Namespace) -> int:
+    from minimdm.motion.corpora import download_corpus
+
+    folder = download_corpus(args.name, force=args.force, url=args.url, progress=not args.quiet)
+    print(json.dumps({"corpus": args.name, "folder": str(folder)}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``minimdm`` command."""
     p = argparse.ArgumentParser(prog="minimdm", description=__doc__.split("\n\n")[0])
@@ -205,16 +228,30 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
+
+    d = sub.add_parser("data", help="list and download motion corpora")
+    dsub = d.add_subparsers(dest="data_command", required=True)
+    dl = dsub.add_parser("list", help="known corpora: licence, description, present or not")
+    dl.set_defaults(fn=_cmd_data_list)
+    dd = dsub.add_parser("download", help="download and unpack a corpus (resumes if it can)")
+    dd.add_argument("name", help="a corpus name, e.g. lafan1 (see `minimdm data list`)")
+    dd.add_argument("--force", action="store_true", help="download and unpack again")
+    dd.add_argument("--url", help="fetch from this address instead (a mirror or file://)")
+    dd.add_argument("--quiet", action="store_true", help="no progress bar")
+    dd.set_defaults(fn=_cmd_data_download)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``minimdm`` console script."""
+    from minimdm.motion.download import DownloadError
+
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"minimdm {args.command}: error: {e}", file=sys.stderr)
+    except (ValueError, FileNotFoundError, DownloadError) as e:
+        where = " ".join(filter(None, [args.command, getattr(args, "data_command", None)]))
+        print(f"minimdm {where}: error: {e}", file=sys.stderr)
         return 2
 
 

@@ -18,15 +18,25 @@ import json
 import os
 import shutil
 import sys
-import tarfile
-import tempfile
+import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 
 from .bvh import load_bvh
 from .data import Clip, MotionDataset
+from .download import DONE, DownloadError, fetch, unpack
 
-__all__ = ["CORPORA", "Corpus", "data_home", "corpus_path", "corpus_split", "load_corpus"]
+__all__ = [
+    "CORPORA",
+    "Corpus",
+    "data_home",
+    "corpus_path",
+    "corpus_split",
+    "download_corpus",
+    "is_present",
+    "list_corpora",
+    "load_corpus",
+]
 
 BUNDLED = Path(__file__).resolve().parents[2] / "data"
 """The project's ``data/`` folder: bundled archives, licences and splits."""
@@ -47,8 +57,27 @@ class Corpus:
     archive: str
     """File name of the bundled archive in ``data/`` ('' if it is not bundled)."""
     folder: str
-    """The folder inside the archive (and in the data folder) that holds the corpus."""
+    """The folder inside the bundled archive, and the corpus's folder in the data folder."""
+    url: str = ""
+    """Where ``minimdm data download`` fetches it ('' if nowhere)."""
+    member: str = ""
+    """The folder inside the downloaded archive that becomes the corpus ('' = its root)."""
+    size: int | None = None
+    """Bytes of the downloaded archive, or None when unknown (then not checked)."""
+    sha256: str | None = None
+    """SHA-256 of the downloaded archive, or None when unknown (then trusted on first use)."""
 
+
+# The Bandai-Namco corpora come from GitHub's archive of the whole repository's main branch
+# (github.com/<owner>/<repo>/archive/refs/heads/main.zip): one stable address with no release
+# to pin, whose zip holds everything under "<repo>-main/". It changes whenever upstream commits,
+# so its size and hash are unknown here (None) and trusted on first use. LaFAN1's BVH files are
+# one Git-LFS zip; we use its "raw" address, which GitHub redirects to the LFS media server
+# (media.githubusercontent.com) -- the raw address stays valid if the media host changes.
+# None of these addresses could be tried from the machine that wrote this (no network).
+_BANDAI_REPO = "BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset"
+_BANDAI_ZIP = f"https://github.com/{_BANDAI_REPO}/archive/refs/heads/main.zip"
+_BANDAI_ROOT = "Bandai-Namco-Research-Motiondataset-main/dataset"
 
 CORPORA: dict[str, Corpus] = {
     "bandai-namco-1": Corpus(
@@ -58,6 +87,29 @@ CORPORA: dict[str, Corpus] = {
         attribution="Bandai Namco Research Inc.; Kobayashi et al. 2023, arXiv:2306.08861",
         archive="bandai-namco-1.tar.xz",
         folder="bandai-namco-1",
+        url=_BANDAI_ZIP,
+        member=f"{_BANDAI_ROOT}/Bandai-Namco-Research-Motiondataset-1",
+    ),
+    "bandai-namco-2": Corpus(
+        name="bandai-namco-2",
+        description="2,902 takes, 384,931 frames, 30 fps, 7 styles: locomotion incl. turns, "
+        "hand actions (~515 MB of BVH)",
+        licence="CC BY-NC 4.0 (non-commercial use only)",
+        attribution="Bandai Namco Research Inc.; Kobayashi et al. 2023, arXiv:2306.08861",
+        archive="",
+        folder="bandai-namco-2",
+        url=_BANDAI_ZIP,
+        member=f"{_BANDAI_ROOT}/Bandai-Namco-Research-Motiondataset-2",
+    ),
+    "lafan1": Corpus(
+        name="lafan1",
+        description="Ubisoft La Forge Animation Dataset: 77 BVH takes, 30 fps, 5 subjects",
+        licence="CC BY-NC-ND 4.0 (non-commercial, no derivatives)",
+        attribution="Ubisoft La Forge; Harvey et al. 2020, Robust Motion In-betweening",
+        archive="",
+        folder="lafan1",
+        url="https://github.com/ubisoft/ubisoft-laforge-animation-dataset/raw/master/lafan1/lafan1.zip",
+        member="lafan1",
     ),
 }
 """The known corpora, by name."""
@@ -82,7 +134,12 @@ def data_home() -> Path:
     return base / "minimdm"
 
 
-_DONE = ".complete"  # written last: a folder without it is a partial extraction
+_DONE = DONE  # written last: a folder without it is a partial extraction
+
+
+def is_present(name: str) -> bool:
+    """True when the corpus is unpacked whole (its ``.complete`` marker) in :func:`data_home`."""
+    return (data_home() / _known(name).folder / _DONE).exists()
 
 
 def corpus_path(name: str) -> Path:
@@ -97,24 +154,92 @@ def corpus_path(name: str) -> Path:
         return target
     archive = BUNDLED / info.archive
     if not info.archive or not archive.exists():
+        fix = f"; run `minimdm data download {name}`" if info.url else ""
         raise FileNotFoundError(
-            f"corpus {name!r} is not unpacked in {target} and its archive {archive} is missing"
+            f"corpus {name!r} is not unpacked in {target} and has no bundled archive{fix}"
         )
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{info.folder}-", dir=target.parent))
+    return unpack(archive, target, member=info.folder, stamp=info.archive)
+
+
+def _archive_name(name: str, url: str) -> str:
+    """``NAME`` plus the archive suffix of ``url`` (``.zip``, ``.tar.gz``, ...)."""
+    path = urllib.parse.urlsplit(url).path.lower()
+    for suffix in (".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".tar", ".zip"):
+        if path.endswith(suffix):
+            return name + suffix
+    return name + ".archive"  # unpack() tells zip from tar by content, not by name
+
+
+def download_corpus(
+    name: str, *, force: bool = False, url: str | None = None, progress: bool = True
+) -> Path:
+    """Download and unpack a corpus into :func:`data_home`; return its folder.
+
+    A bundled corpus is unpacked from ``data/`` (no network) unless ``url`` is given. Otherwise
+    the archive goes to ``data_home()/NAME.zip`` (or ``.tar.gz``, ...) via ``NAME.zip.part``,
+    which a later run resumes; copying the archive there by hand skips the download. The
+    archive is deleted once unpacked.
+
+    The archive's size and SHA-256 are checked when :data:`CORPORA` records them. When it does
+    not (None: unknown), the SHA-256 of what arrived is printed and recorded in
+    ``data_home()/NAME.sha256``; later downloads must match it (trust on first use; delete that
+    file to accept a new upstream version).
+
+    Args:
+        name: a corpus of :data:`CORPORA`.
+        force: download and unpack again even if the corpus is present.
+        url: fetch from here instead (a mirror, or a ``file://`` path).
+        progress: show a progress bar.
+
+    Raises:
+        ValueError: an unknown name (listing the known ones).
+        DownloadError: no network (one line: what to do), or a size/hash mismatch.
+    """
+    info = _known(name)
+    home = data_home()
+    target = home / info.folder
+    if force and target.exists():
+        shutil.rmtree(target)
+    if (target / _DONE).exists():
+        return target
+    if url is None and info.archive and (BUNDLED / info.archive).exists():
+        return corpus_path(name)
+    source = url or info.url
+    if not source:
+        raise ValueError(f"corpus {name!r} has no download address")
+    archive = home / _archive_name(name, source)
+    record = home / f"{name}.sha256"
+    trusted = record.read_text().split()[0] if info.sha256 is None and record.exists() else None
     try:
-        with tarfile.open(archive) as tar:
-            tar.extractall(tmp, filter="data")
-        unpacked = tmp / info.folder
-        if not unpacked.is_dir():
-            raise FileNotFoundError(f"{archive} holds no folder {info.folder!r}")
-        (unpacked / _DONE).write_text(info.archive + "\n")
-        if target.exists():  # a partial folder from an earlier, interrupted attempt
-            shutil.rmtree(target)
-        os.replace(unpacked, target)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        digest = fetch(
+            source, archive, size=info.size, sha256=info.sha256 or trusted, progress=progress
+        )
+    except DownloadError as e:
+        if trusted and "SHA-256" in str(e):
+            raise DownloadError(
+                f"{e} (recorded in {record} on first download; delete that "
+                "file if upstream changed)"
+            ) from None
+        raise
+    if info.sha256 is None and trusted is None:
+        record.write_text(f"{digest}  {source}\n")
+        print(f"{archive.name}: SHA-256 {digest} (unknown to minimdm; recorded in {record})")
+    unpack(archive, target, member=info.member, stamp=f"{source} sha256={digest}")
+    archive.unlink()
     return target
+
+
+def list_corpora() -> list[dict[str, str]]:
+    """One row per corpus: name, description, licence and whether it is in :func:`data_home`."""
+    return [
+        {
+            "corpus": c.name,
+            "present": "yes" if is_present(c.name) else ("bundled" if c.archive else "no"),
+            "licence": c.licence,
+            "description": c.description,
+        }
+        for c in CORPORA.values()
+    ]
 
 
 def corpus_split(name: str) -> dict[str, list[str]]:
