@@ -175,7 +175,7 @@ def _cmd_data_list(args: argparse.Namespace) -> int:
 
     rows = list_corpora()
     widths = {k: max(len(k), *(len(r[k]) for r in rows)) for k in rows[0]}
-    for r in [dict(zip(widths, widths)), *rows]:  # a header row, then one row per corpus
+    for r in [{k: k for k in widths}, *rows]:  # a header row, then one row per corpus
         print("  ".join(r[k].ljust(w) for k, w in widths.items()).rstrip())
     print(f"data folder: {data_home()}")
     return 0
