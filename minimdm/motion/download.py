@@ -23,6 +23,7 @@ proves only that later downloads equal the first one, not that the first one was
 from __future__ import annotations
 
 import hashlib
+import http.client
 import os
 import shutil
 import tarfile
@@ -152,7 +153,9 @@ def fetch(
                     h.update(block)
                     got += len(block)
                     bar.update(len(block))
-        except OSError as e:  # connection lost mid-way: keep the .part to resume
+            if length and length.isdigit() and got != total:  # closed early, without an error
+                raise ConnectionError(f"the server promised {total} bytes")
+        except (OSError, http.client.HTTPException) as e:  # lost mid-way: keep .part to resume
             raise DownloadError(
                 f"download of {url} interrupted after {got} bytes ({e}); run again to resume"
             ) from None
@@ -180,7 +183,10 @@ def _extract_zip(archive: Path, out: Path) -> None:
 
 def _extract_tar(archive: Path, out: Path) -> None:
     with tarfile.open(archive) as tar:
-        tar.extractall(out, filter="data")  # refuses absolute paths, '..', links out
+        try:
+            tar.extractall(out, filter="data")  # refuses absolute paths, '..', links out
+        except tarfile.FilterError as e:
+            raise DownloadError(f"{archive.name}: refusing an unsafe member: {e}") from None
 
 
 def unpack(archive: str | Path, target: str | Path, member: str = "", stamp: str = "") -> Path:
