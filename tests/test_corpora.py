@@ -69,7 +69,9 @@ def test_loaded_takes_carry_their_labels(home):
 
 
 def test_bad_names_and_labels(home, tmp_path, monkeypatch):
-    with pytest.raises(ValueError, match=r"known corpora: \['bandai-namco-1'\]"):
+    with pytest.raises(
+        ValueError, match=r"known corpora: \['bandai-namco-1', 'bandai-namco-2', 'lafan1'\]"
+    ):
         corpora.load_corpus("lafan2")
     with pytest.raises(ValueError, match="split must be"):
         corpora.load_corpus(split="validation")
