@@ -34,6 +34,8 @@ import urllib.request
 import zipfile
 from pathlib import Path, PurePosixPath
 
+from tqdm.auto import tqdm
+
 __all__ = ["DONE", "DownloadError", "fetch", "sha256_of", "unpack"]
 
 DONE = ".complete"
@@ -139,12 +141,7 @@ def fetch(
             with open(part, "rb") as f:
                 for block in iter(lambda: f.read(CHUNK), b""):
                     h.update(block)
-        from tqdm.auto import tqdm
-
-        bar = tqdm(
-            total=total, initial=have, unit="B", unit_scale=True, desc=dest.name,
-            disable=not progress,
-        )  # fmt: skip
+        bar = tqdm(total=total, initial=have, unit="B", unit_scale=True, disable=not progress)
         got = have
         try:
             with open(part, "ab" if have else "wb") as f:
