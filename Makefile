@@ -26,7 +26,7 @@ test: $(STAMP)
 	$(PY) -m ruff check minimdm tests benchmarks notebooks
 	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
 	$(PY) -m pytest -q -p no:cacheprovider tests
-	$(PY) -m pytest -q -p no:cacheprovider --nbval-lax notebooks
+	$(PY) -m pytest -q -p no:cacheprovider --nbval-lax -n 2 --dist loadfile notebooks
 
 book: $(STAMP)
 	$(VENV)/bin/jupyter-book build book --warningiserror --keep-going
