@@ -63,6 +63,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
     if args.out:
         command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
+    if args.threads != 1:
+        command.append(f"--threads {args.threads}")
     result = train_amdm(
         config,
         out,
@@ -75,6 +77,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         "checkpoint": str(result.checkpoint.paths.weights),
         "steps": result.steps,
         "seconds": round(result.seconds, 1),
+        "train_seconds": result.checkpoint.metadata.get("train_seconds"),  # all resumed runs
         "steps_per_second": round(result.steps_per_second, 2),
         "eval_loss": next(
             (r["eval_loss"] for r in reversed(result.history) if "eval_loss" in r), None

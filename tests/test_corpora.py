@@ -98,3 +98,56 @@ def test_folder_with_mixed_skeletons_is_refused(home, tmp_path):
     (tmp_path / "b.bvh").write_text(text.replace("JOINT Neck", "JOINT Throat"))
     with pytest.raises(BVHError, match=r"a.bvh and b.bvh .*'Neck'.*'Throat'"):
         load_bvh(tmp_path)
+
+
+TINY_TRAIN = dict(
+    width=32, depth=3, time_dim=8, T=4, batch_size=8, total_steps=4, rollout=2, teacher_steps=1,
+    ramp_steps=1, eval_interval=2, ckpt_interval=0, log_interval=2, loop_frames=None,
+)  # fmt: skip
+
+
+def test_train_reads_a_corpus_name_or_a_bvh_folder(home, tmp_path, capsys):
+    import yaml
+
+    from minimdm.checkpoint import load_checkpoint
+    from minimdm.cli import main
+
+    takes = ["dataset-1_walk_normal_002", "dataset-1_run_sad_001"]
+    assert set(takes) <= set(corpora.corpus_split("bandai-namco-1")["train"])
+    # a corpus name with its split: trains on the named training takes, reports the test takes
+    cfg = tmp_path / "corpus.yaml"
+    cfg.write_text(
+        yaml.safe_dump(dict(TINY_TRAIN, corpus="bandai-namco-1", split="train", clips=takes))
+    )
+    assert main(["train", str(cfg), "--out", str(tmp_path / "a"), "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["steps"] == 4 and summary["train_seconds"] > 0
+    ck = load_checkpoint(tmp_path / "a")
+    assert ck.metadata["data"]["corpus"] == "bandai-namco-1"
+    assert sorted(ck.metadata["data"]["clips"]) == sorted(takes)
+    log = [json.loads(ln) for ln in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if "heldout_loss" in r] == [2, 4]
+    # a folder of BVH files: the same two takes, no split, clip names from the file names
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    for t in takes:
+        shutil.copy(corpora.corpus_path("bandai-namco-1") / "data" / f"{t}.bvh", folder)
+    cfg = tmp_path / "folder.yaml"
+    cfg.write_text(yaml.safe_dump(dict(TINY_TRAIN, corpus=str(folder))))
+    assert main(["train", str(cfg), "--out", str(tmp_path / "b"), "--quiet"]) == 0
+    ck = load_checkpoint(tmp_path / "b")
+    assert ck.metadata["data"]["corpus"] == str(folder)
+    assert sorted(ck.metadata["data"]["clips"]) == sorted(takes)
+    log = [json.loads(ln) for ln in (tmp_path / "b" / "log.jsonl").read_text().splitlines()]
+    assert any("eval_loss" in r for r in log) and not any("heldout_loss" in r for r in log)
+
+
+def test_bad_training_sources(home, tmp_path):
+    with pytest.raises(ValueError, match=r"neither 'deepmimic', a known corpus .*bandai-namco-1"):
+        corpora.load_motion("bandai-namco-9")
+    with pytest.raises(ValueError, match="a BVH folder has no fixed split"):
+        corpora.load_motion(str(tmp_path), split="train")
+    with pytest.raises(ValueError, match="DeepMimic clips have no split"):
+        corpora.load_motion("deepmimic", split="test")
+    with pytest.raises(ValueError, match="not in corpus"):
+        corpora.load_motion("bandai-namco-1", split="test", names=["dataset-1_walk_normal_002"])

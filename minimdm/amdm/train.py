@@ -23,6 +23,12 @@ comes from one :class:`torch.Generator` seeded by ``seed``, whose state is saved
 checkpoint with the optimizer and the EMA weights; a run resumed from step k performs the same
 step k + 1 as an uninterrupted one, bit for bit.
 
+``torchrun --nproc_per_node=N -m minimdm train CONFIG`` trains on N processes with DDP
+(:mod:`minimdm.distributed`): each process draws ``batch_size / N`` windows from its own
+generator, DDP averages the gradients, and rank 0 alone writes checkpoints and logs. A resumed
+multi-process run reseeds each rank's generator from the step, so it continues cleanly but is
+not bit-identical to an uninterrupted one.
+
 The config is :class:`~minimdm.amdm.train_config.TrainConfig` (re-exported here with
 :func:`load_config` and :func:`student_probability`); the losses are in
 :mod:`minimdm.amdm.losses`; this module holds the loop.
@@ -42,8 +48,10 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
+from minimdm import distributed
 from minimdm.amdm.losses import make_windows, window_loss
 from minimdm.amdm.train_config import (
     TrainConfig,
@@ -102,18 +110,31 @@ class TrainResult:
 
 def _load_data(config: TrainConfig) -> dict[str, Any]:
     """Load the clips, encode them (A-MDM §3.1) and fit the normalizer: the real-data path."""
-    from minimdm.motion import data, features
+    from minimdm.motion import features
 
-    clips = data.load_clips(fps=config.fps, loop_frames=config.loop_frames, names=config.clips)
+    clips = _load_clips(config.corpus, config.split, config.fps, config.clips, config.loop_frames)
     arrays = [features.encode(c) for c in clips]  # [(F_i - 1, D)]
     normalizer = features.Normalizer.fit(arrays)
+    skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
+    heldout = None
+    if config.split == "train":  # the corpus's test takes: a held-out loss during training
+        test = _load_clips(config.corpus, "test", config.fps, None, config.loop_frames)
+        heldout = [normalizer.normalize(features.encode(c)) for c in test]
     return {
+        "heldout": heldout,
         "features": [normalizer.normalize(a) for a in arrays],
         "normalizer": normalizer,
-        "skeleton": clips.skeleton,
-        "layout": features.FeatureLayout.for_skeleton(clips.skeleton, config.fps),
+        "skeleton": skeleton,
+        "layout": features.FeatureLayout.for_skeleton(skeleton, config.fps),
         "clip_names": clips.names,
     }
+
+
+def _load_clips(corpus: str, split: str | None, fps: float, names: Any, loop_frames: Any) -> Any:
+    """The clips a config names (:func:`minimdm.motion.corpora.load_motion`)."""
+    from minimdm.motion.corpora import load_motion
+
+    return load_motion(corpus, split=split, fps=fps, names=names, loop_frames=loop_frames)
 
 
 # Fields that may change between a checkpoint and a resumed run.
@@ -163,7 +184,9 @@ def train_amdm(
         progress: show a tqdm progress bar.
         eval_fn: ``eval_fn(model, step) -> {name: value}``, called with the EMA (or raw) model
             in eval mode every ``eval_interval`` steps and at the end, next to the built-in
-            teacher-forced loss ``eval_loss``. It must not use the global RNG to stay resumable.
+            teacher-forced losses ``eval_loss`` (training takes) and ``heldout_loss`` (the test
+            takes, when ``config.split`` is "train"). It must not use the global RNG to stay
+            resumable.
         callback: ``callback(step, record)`` after every optimizer step (``step`` counts
             finished steps); raising from it stops the run, e.g. to simulate an interruption.
         num_threads: torch CPU threads during the run (None: leave as is). On a shared 2-core
@@ -190,11 +213,16 @@ def _train(
     metadata: dict[str, Any] | None,
 ) -> TrainResult:
     out_dir = Path(out_dir)
-    device = torch.device(config.device)
-    clip_names = None
+    world = distributed.setup(config.device)  # one process, or one of torchrun's N
+    if config.batch_size % world.size:
+        raise ValueError(
+            f"batch_size {config.batch_size} must divide among the {world.size} processes"
+        )
+    device = torch.device(world.device)
+    clip_names, heldout = None, None
     if features is None:
         loaded = _load_data(config)
-        features, clip_names = loaded["features"], loaded["clip_names"]
+        features, clip_names, heldout = loaded["features"], loaded["clip_names"], loaded["heldout"]
         normalizer, skeleton, layout = loaded["normalizer"], loaded["skeleton"], loaded["layout"]
     windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
     clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
@@ -208,9 +236,12 @@ def _train(
     for p in ema.parameters() if ema is not None else ():
         p.requires_grad_(False)
     params = list(model.parameters())
+    # DDP averages the gradients over the processes during backward (minimdm.distributed)
+    trained = model if world.size == 1 else DistributedDataParallel(model)
     opt = torch.optim.Adam(params, lr=config.lr)
     gen = torch.Generator(device=device).manual_seed(config.seed)
     step = 0
+    prior_seconds = 0.0  # training time of the runs this one resumes
 
     paths = checkpoint_paths(out_dir)
     if resume and paths.train.exists():
@@ -227,6 +258,9 @@ def _train(
         opt.load_state_dict(state["optimizer"])
         gen.set_state(state["generator"].to(torch.uint8))
         step = int(state["step"])
+        prior_seconds = float(meta.get("train_seconds", 0.0))
+    if world.size > 1:  # each process draws its own batches: a generator per rank and start
+        gen.manual_seed(config.seed + 7919 * world.rank + 104729 * step)
 
     metadata_base = {
         **(metadata or {}),
@@ -236,7 +270,13 @@ def _train(
         "skeleton": skeleton,
         "normalizer": normalizer,
         "ema": ema is not None,
-        "data": {"clips": clip_names, "fps": config.fps, "windows": int(windows.shape[0])},
+        "data": {
+            "corpus": config.corpus,
+            "split": config.split,
+            "clips": clip_names,
+            "fps": config.fps,
+            "windows": int(windows.shape[0]),
+        },
     }
     if config.model_kind == "amdm":
         metadata_base["diffusion"] = {
@@ -247,6 +287,8 @@ def _train(
         }
 
     def save(at_step: int) -> None:
+        if not world.is_main:
+            return
         state = {
             "step": at_step,
             "model": model.state_dict(),
@@ -254,7 +296,8 @@ def _train(
             "optimizer": opt.state_dict(),
             "generator": gen.get_state(),
         }
-        meta = dict(metadata_base, step=at_step)
+        seconds = prior_seconds + time.perf_counter() - t0  # wall time of the loop, all runs
+        meta = dict(metadata_base, step=at_step, train_seconds=round(seconds, 1))
         save_checkpoint(out_dir, ema if ema is not None else model, meta, optimizer_state=state)
 
     loss_kw = dict(
@@ -265,10 +308,16 @@ def _train(
         clip_x0=clip_x0,
     )
 
-    # Built-in evaluation: teacher-forced loss on fixed windows with its own generator.
+    # Built-in evaluation: teacher-forced loss on fixed windows with its own generator, on the
+    # training takes (eval_loss) and, when the config trains on a split, the test takes.
     eval_gen = torch.Generator(device=device)
     eval_idx = torch.randperm(windows.shape[0], generator=torch.Generator().manual_seed(1234))
     eval_windows = windows[eval_idx[: config.eval_windows].to(device)]
+    heldout_windows = None
+    if heldout:  # the same number of windows from the held-out takes
+        hw = make_windows(heldout, config.rollout).to(device)
+        h_idx = torch.randperm(hw.shape[0], generator=torch.Generator().manual_seed(1234))
+        heldout_windows = hw[h_idx[: config.eval_windows].to(device)]
 
     def evaluate(at_step: int) -> dict[str, float]:
         net = ema if ema is not None else model
@@ -276,7 +325,11 @@ def _train(
         eval_gen.manual_seed(config.seed + 1)
         with torch.no_grad():
             loss, _ = window_loss(net, eval_windows, 0.0, eval_gen, **loss_kw)
-        out = {"eval_loss": float(loss)}
+            out = {"eval_loss": float(loss)}
+            if heldout_windows is not None:
+                eval_gen.manual_seed(config.seed + 1)
+                loss, _ = window_loss(net, heldout_windows, 0.0, eval_gen, **loss_kw)
+                out["heldout_loss"] = float(loss)
         if eval_fn is not None:
             out.update(eval_fn(net, at_step))
         model.train()
@@ -284,29 +337,35 @@ def _train(
 
     log_path = out_dir / "log.jsonl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    if log_path.exists():  # drop records past the resumed step (an interrupted tail)
+    if log_path.exists() and world.is_main:  # drop records past the resumed step
         keep = [ln for ln in log_path.read_text().splitlines() if json.loads(ln)["step"] <= step]
         log_path.write_text("".join(ln + "\n" for ln in keep))
     history: list[dict] = []
 
     def log(record: dict) -> None:
         history.append(record)
+        if not world.is_main:
+            return
         with open(log_path, "a") as f:
             f.write(json.dumps(record) + "\n")
 
     model.train()
-    start_step, t0 = step, time.perf_counter()
+    start_step = step
+    t0 = time.perf_counter()
     with tqdm(
-        total=config.total_steps, initial=step, disable=not progress, desc=config.model_kind
+        total=config.total_steps,
+        initial=step,
+        disable=not progress or not world.is_main,
+        desc=config.model_kind,
     ) as bar:
         running, n_running = 0.0, 0
         while step < config.total_steps:
             lr = learning_rate(config, step)
             set_lr(opt, lr)
             p = student_probability(config, step)
-            B, W = config.batch_size, windows.shape[0]
+            B, W = config.batch_size // world.size, windows.shape[0]  # this process's share
             idx = torch.randint(W, (B,), generator=gen, device=device)
-            loss, info = window_loss(model, windows[idx], p, gen, **loss_kw)
+            loss, info = window_loss(trained, windows[idx], p, gen, **loss_kw)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
             optimizer_step(opt, loss, params, config.grad_clip)
@@ -333,6 +392,9 @@ def _train(
     seconds = time.perf_counter() - t0
     if step == start_step and not paths.weights.exists():
         save(step)
+    if world.size > 1:
+        torch.distributed.barrier()  # rank 0's checkpoint is on disk before anyone loads it
+    distributed.teardown(world)
     done = step - start_step
     return TrainResult(
         checkpoint=load_checkpoint(out_dir, device=device),
@@ -367,13 +429,12 @@ def checkpoint_training_frames(ckpt: Checkpoint) -> Tensor:
     The clips are loaded as the training loaded them (names, fps, loop unrolling), encoded, and
     normalized with the checkpoint's own statistics.
     """
-    from minimdm.motion import data, features
+    from minimdm.motion import features
 
     cfg, meta = ckpt.config, ckpt.metadata
     names = (meta.get("data") or {}).get("clips") or cfg.get("clips")
-    clips = data.load_clips(
-        fps=cfg.get("fps", 30.0), loop_frames=cfg.get("loop_frames", 150), names=names
-    )
+    corpus, split = cfg.get("corpus", "deepmimic"), cfg.get("split")
+    clips = _load_clips(corpus, split, cfg.get("fps", 30.0), names, cfg.get("loop_frames", 150))
     if ckpt.normalizer is None:
         raise ValueError(f"checkpoint {ckpt.paths.weights} records no normalizer")
     norm = features.Normalizer.from_dict(ckpt.normalizer)

@@ -76,10 +76,16 @@ class TrainConfig:
     # ---- data
     fps: float = 30.0
     """Frame rate the clips are resampled to (A-MDM: 30 Hz)."""
+    corpus: str = "deepmimic"
+    """The motion to learn: 'deepmimic' (20 clips of pybullet_data), a corpus name
+    ('bandai-namco-1', or one fetched with `minimdm data download`), or a folder of BVH files."""
+    split: str | None = None
+    """'train' or 'test' takes of the corpus's fixed split, or None (all; a folder has no split)."""
     clips: list[str] | None = None
-    """Names of the clips to train on (None: every humanoid clip of the data package)."""
+    """Names of the clips or takes to train on (None: all of them)."""
     loop_frames: int | None = 150
-    """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle)."""
+    """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle;
+    DeepMimic only: corpus takes do not loop)."""
     device: str = "cpu"
     """Where to train: 'cpu' or 'cuda'."""
     config_file: str | None = None

@@ -36,6 +36,7 @@ __all__ = [
     "is_present",
     "list_corpora",
     "load_corpus",
+    "load_motion",
 ]
 
 BUNDLED = Path(__file__).resolve().parents[2] / "data"
@@ -302,10 +303,20 @@ def load_corpus(
         A :class:`~minimdm.motion.data.MotionDataset` of clips named after their takes, each
         with ``labels = {"content": ..., "style": ...}``.
     """
-    _known(name)
+    info = _known(name)
     if split not in (None, "train", "test"):
         raise ValueError(f"split must be 'train', 'test' or None, got {split!r}")
     folder = corpus_path(name)
+    if not (folder / "cfg" / "content_label.txt").exists():  # no Bandai-style labels
+        if split is not None and not (BUNDLED / f"{info.folder}.split.json").exists():
+            raise ValueError(f"corpus {name!r} has no fixed split; use split=None")
+        dataset = load_bvh(folder, fps=fps)
+        if takes is not None:
+            unknown = sorted(set(takes) - set(dataset.names))
+            if unknown:
+                raise ValueError(f"takes {unknown[:3]} are not in corpus {name!r}")
+            dataset = MotionDataset([c for c in dataset if c.name in set(takes)])
+        return dataset
     names = sorted(p.stem for p in (folder / "data").glob("*.bvh"))
     if split is not None:
         names = corpus_split(name)[split]
@@ -321,3 +332,48 @@ def load_corpus(
         clip.labels = _labels(folder, take, contents, styles)
         clips.append(clip)
     return MotionDataset(clips)
+
+
+def load_motion(
+    source: str,
+    split: str | None = None,
+    fps: float = 30.0,
+    names: list[str] | None = None,
+    loop_frames: int | None = None,
+) -> MotionDataset:
+    """The clips a training config names: ``"deepmimic"``, a corpus name, or a BVH folder.
+
+    Args:
+        source: ``"deepmimic"`` (the 20 DeepMimic clips of ``pybullet_data``), a name of
+            :data:`CORPORA` (bundled or downloaded with ``minimdm data download``), or the path
+            of a folder of ``.bvh`` files (one skeleton; see :func:`~minimdm.motion.bvh.load_bvh`).
+        split: ``"train"`` or ``"test"`` takes of a corpus's fixed split, or None (all). A BVH
+            folder and the DeepMimic clips have no split.
+        fps: resample to this rate.
+        names: only these clips or takes (None: all of them).
+        loop_frames: unroll looping clips to this many frames (DeepMimic only; corpora's takes
+            do not loop).
+    """
+    from .data import load_clips
+
+    if source == "deepmimic":
+        if split is not None:
+            raise ValueError(f"the DeepMimic clips have no split; use split: null, got {split!r}")
+        return load_clips(fps=fps, loop_frames=loop_frames, names=names)
+    if source in CORPORA:
+        return load_corpus(source, split=split, fps=fps, takes=names)
+    path = Path(source).expanduser()
+    if not path.is_dir():
+        raise ValueError(
+            f"data source {source!r} is neither 'deepmimic', a known corpus "
+            f"({sorted(CORPORA)}) nor a folder of .bvh files"
+        )
+    if split is not None:
+        raise ValueError(f"a BVH folder has no fixed split; use split: null, got {split!r}")
+    dataset = load_bvh(path, fps=fps)
+    if names is not None:
+        unknown = sorted(set(names) - set(dataset.names))
+        if unknown:
+            raise ValueError(f"clips {unknown[:3]} are not in {path}")
+        dataset = MotionDataset([c for c in dataset if c.name in set(names)])
+    return dataset
