@@ -33,8 +33,9 @@ from torch import Tensor
 from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion import metrics
-from minimdm.motion.data import MotionDataset, load_clips
-from minimdm.motion.features import StartPose, encode, start_pose_of
+from minimdm.motion.corpora import load_motion
+from minimdm.motion.data import MotionDataset
+from minimdm.motion.features import FeatureLayout, StartPose, encode, start_pose_of
 from minimdm.motion.skeleton import Skeleton
 from minimdm.utils import format_table  # re-exported: the chapters print tables with it
 
@@ -52,6 +53,8 @@ __all__ = [
     "table2",
     "time_per_frame",
     "drift",
+    "pose_distance_to_training",
+    "memorisation_probe",
     "format_table",
 ]
 
@@ -80,6 +83,10 @@ class Protocol:
     """Sampling seeds; metrics are reported as mean ± std over them."""
     state_seed: int = 0
     """Seed that picks the initial states."""
+    split: str | None = "test"
+    """Where the initial states come from: 'test' (the held-out takes of a checkpoint trained on
+    a corpus's 'train' split, as the paper evaluates) or None (the training clips). A checkpoint
+    trained without a split always starts from its training clips."""
 
     def __post_init__(self) -> None:
         for name in ("n_states", "n_samples", "apd_frames", "ade_frames"):
@@ -113,6 +120,8 @@ class InitialState:
     """Root ground position and heading at that frame (decoding starts there)."""
     reference: np.ndarray | None = field(default=None, repr=False)
     """(F_ref, J, 3) ground-truth positions of the frames after it, or None."""
+    bone_lengths: np.ndarray | None = field(default=None, repr=False)
+    """(J - 1,) the clip's own bone lengths (actors differ), the reference of Bone.Err."""
 
 
 def checkpoint_skeleton(ckpt: Checkpoint) -> Skeleton:
@@ -122,13 +131,39 @@ def checkpoint_skeleton(ckpt: Checkpoint) -> Skeleton:
     return Skeleton.from_dict(ckpt.skeleton)
 
 
-def checkpoint_clips(ckpt: Checkpoint | None = None, unrolled: bool = True) -> MotionDataset:
-    """The clips a checkpoint was trained on, as it saw them (fps, loop unrolling)."""
+def checkpoint_clips(
+    ckpt: Checkpoint | None = None, unrolled: bool = True, split: str = "train"
+) -> MotionDataset:
+    """The clips a checkpoint was trained on, as it saw them (fps, loop unrolling), or its
+    corpus's held-out takes.
+
+    Args:
+        ckpt: the checkpoint (None: the 20 DeepMimic clips).
+        unrolled: unroll looping clips as training did (DeepMimic only).
+        split: ``"train"`` (the clips it learnt from) or ``"test"`` (the test takes of the
+            corpus's fixed split; only for a checkpoint trained on its ``"train"`` split).
+    """
     cfg = ckpt.config if ckpt is not None else {}
     data = ckpt.metadata.get("data", {}) if ckpt is not None else {}
-    names = data.get("clips") or cfg.get("clips")
+    corpus, trained_on = cfg.get("corpus", "deepmimic"), cfg.get("split")
     loop = cfg.get("loop_frames", 150) if unrolled else None
-    return load_clips(fps=cfg.get("fps", 30.0), loop_frames=loop, names=names)
+    if split == "train":
+        names = data.get("clips") or cfg.get("clips")
+        return load_motion(corpus, trained_on, cfg.get("fps", 30.0), names, loop)
+    if split != "test":
+        raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    if trained_on != "train":
+        raise ValueError(
+            f"checkpoint was trained on {corpus!r} with split {trained_on!r}: it has no "
+            "held-out takes (train on split: train to keep the test takes out)"
+        )
+    return load_motion(corpus, "test", cfg.get("fps", 30.0), None, loop)
+
+
+def _start_clips(ckpt: Checkpoint, protocol: Protocol, unrolled: bool = True) -> MotionDataset:
+    """The clips a protocol's initial states come from (:attr:`Protocol.split`)."""
+    held_out = protocol.split == "test" and ckpt.config.get("split") == "train"
+    return checkpoint_clips(ckpt, unrolled, "test" if held_out else "train")
 
 
 def _state(clip, feats: Tensor, frame: int, ref_frames: int) -> InitialState:
@@ -137,15 +172,22 @@ def _state(clip, feats: Tensor, frame: int, ref_frames: int) -> InitialState:
         raise ValueError(f"frame must lie in [1, {clip.n_frames - 1}] for clip {clip.name!r}")
     sp = start_pose_of(clip, frame)
     ref = clip.positions[frame + 1 : frame + 1 + ref_frames] if ref_frames else None
-    return InitialState(clip.name, frame, feats[frame - 1], sp, ref)
+    sk = clip.skeleton
+    bones = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    return InitialState(clip.name, frame, feats[frame - 1], sp, ref, bones)
 
 
 def initial_state(
     ckpt: Checkpoint | None, clip: str, frame: int = 0, ref_frames: int = 0
 ) -> InitialState:
     """The initial state at ``frame`` of ``clip`` (frame 0 is taken as frame 1: it has no
-    velocity), with ``ref_frames`` frames of ground truth after it when the clip has them."""
+    velocity), with ``ref_frames`` frames of ground truth after it when the clip has them.
+
+    ``clip`` names a training clip or, for a checkpoint trained on a corpus's training split,
+    a held-out test take."""
     dataset = checkpoint_clips(ckpt)
+    if clip not in dataset.names and ckpt is not None and ckpt.config.get("split") == "train":
+        dataset = checkpoint_clips(ckpt, split="test")
     c = dataset[clip]
     return _state(c, encode(c), max(1, frame), ref_frames)
 
@@ -205,7 +247,7 @@ def evaluate(
     sk = checkpoint_skeleton(ckpt)
     if foot_offset is None:
         foot_offset = _foot_offset(checkpoint_clips(ckpt), sk)
-    ref_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    ckpt_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
     x0 = torch.stack([s.features for s in states])  # (C, D)
     start = _stack_start(states)
     P = protocol
@@ -222,7 +264,7 @@ def evaluate(
                     r.positions[c],
                     sk.parents,
                     sk.foot_indices,
-                    ref_len,
+                    s.bone_lengths if s.bone_lengths is not None else ckpt_len,
                     reference=ref[: P.ade_frames] if has_ref else None,
                     ade_frames=P.ade_frames,
                     foot_offset=foot_offset,
@@ -239,16 +281,16 @@ def dataset_row(
 ) -> dict[str, tuple[float, float]]:
     """The data's own FS, bone error, Jnt.Accel and penetration (std over clips).
 
-    Each clip is cut into windows of at most ``window`` frames, as the samples are.
+    Each clip is cut into windows of at most ``window`` frames, as the samples are; its bone
+    error is measured against its own skeleton's bone lengths.
     """
     foot_offset = _foot_offset(dataset, skeleton)
-    ref_len = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
     per_clip = [
         metrics.motion_metrics(  # one motion (F, J, 3): no APD, no ADE
             c.positions[:window],
             skeleton.parents,
             skeleton.foot_indices,
-            ref_len,
+            metrics.skeleton_bone_lengths(c.skeleton.offsets, c.skeleton.parents),
             foot_offset=foot_offset,
         )
         for c in dataset
@@ -264,13 +306,16 @@ def table1(
     with_dataset: bool = False,
     device: torch.device | str = "cpu",
 ) -> dict[str, dict[str, tuple[float, float]]]:
-    """Table 1 (random sampling) for several models from the same fixed initial states."""
+    """Table 1 (random sampling) for several models from the same fixed initial states.
+
+    The states come from the first model's held-out takes (:attr:`Protocol.split`); the
+    ``dataset`` row measures those same takes."""
     protocol = protocol or Protocol()
     first = next(iter(models.values()))
-    dataset = checkpoint_clips(first)
+    dataset = _start_clips(first, protocol)
     states = random_states(dataset, protocol.n_states, protocol.ade_frames, protocol.state_seed)
     sk = checkpoint_skeleton(first)
-    offset = _foot_offset(dataset, sk)
+    offset = _foot_offset(checkpoint_clips(first), sk)
     out = {
         name: evaluate(ck, states, protocol, steps=steps, foot_offset=offset, device=device)
         for name, ck in models.items()
@@ -288,11 +333,12 @@ def table2(
     steps: int | None = None,
     device: torch.device | str = "cpu",
 ) -> dict[str, dict[str, tuple[float, float]]]:
-    """Table 2 (motion continuation): start at the last 30 frames of every recorded clip."""
+    """Table 2 (motion continuation): start at the last 30 frames of every recorded clip (the
+    held-out takes under :attr:`Protocol.split`)."""
     protocol = protocol or Protocol()
     first = next(iter(models.values()))
     states = continuation_states(
-        checkpoint_clips(first, unrolled=False), per_clip, seed=protocol.state_seed
+        _start_clips(first, protocol, unrolled=False), per_clip, seed=protocol.state_seed
     )
     offset = _foot_offset(checkpoint_clips(first), checkpoint_skeleton(first))
     return {
@@ -371,4 +417,93 @@ def drift(
         "bone_err": np.array(bone),
         "root_height": np.array(height),
         "root_height_std": np.array(height_std),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Memorisation: how close generated poses come to the training poses
+
+
+def _poses_cm(frames: Tensor, layout: FeatureLayout) -> Tensor:
+    """(N, 3J) root-relative, heading-aligned joint positions j_p in cm, from feature rows."""
+    return frames[..., layout.joint_pos].reshape(-1, 3 * layout.n_joints).float() * 100
+
+
+def pose_distance_to_training(
+    ckpt: Checkpoint, frames: Tensor, training: Tensor | None = None, chunk: int = 1024
+) -> np.ndarray:
+    """Each frame's distance to its nearest training frame, in cm.
+
+    The distance between two poses is the root-mean-square over joints of the distance between
+    their joint positions j_p (root-relative and heading-aligned, so where the character
+    stands and faces does not count). A model that copies its data makes frames at distance
+    ~0; real motion it never saw (the held-out takes) shows how far new poses lie.
+
+    Args:
+        ckpt: the checkpoint (its feature layout and training data).
+        frames: (..., D) frames in feature units (``features.encode``, ``Rollout.features``).
+        training: (N, D) the training frames in feature units (default: every frame of the
+            checkpoint's training clips).
+        chunk: query frames per distance matrix (memory).
+
+    Returns:
+        (M,) distances in cm, one per frame.
+    """
+    layout = FeatureLayout.from_dict(ckpt.metadata["feature_layout"])
+    if training is None:
+        training = torch.cat([encode(c) for c in checkpoint_clips(ckpt, unrolled=False)])
+    bank = _poses_cm(training, layout)  # (N, 3J)
+    query = _poses_cm(frames.reshape(-1, frames.shape[-1]), layout)  # (M, 3J)
+    out = [
+        torch.cdist(q, bank).min(dim=1).values for q in query.split(chunk)
+    ]  # RMS over joints: the Euclidean norm of the 3J vector / sqrt(J)
+    return (torch.cat(out) / layout.n_joints**0.5).numpy()
+
+
+def memorisation_probe(
+    ckpt: Checkpoint,
+    protocol: Protocol | None = None,
+    *,
+    steps: int | None = None,
+    near: float = 1.0,
+    device: torch.device | str = "cpu",
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """Distance to the nearest training pose: generated frames next to held-out frames.
+
+    Generated frames: ``n_samples`` rollouts of ``apd_frames`` from each of Table 1's
+    ``n_states`` held-out initial states, for every seed. Held-out frames: every frame of the
+    corpus's test takes (the same for every seed). For each, the median and 90th percentile of
+    :func:`pose_distance_to_training` (cm) and the share of frames nearer than ``near`` cm.
+    Generated frames much nearer than held-out ones point at copying; much farther, at poses
+    off the data.
+
+    Returns:
+        ``{"generated": {stat: (mean, std over seeds)}, "held-out": {stat: (value, 0.0)}}``.
+    """
+    protocol = protocol or Protocol()
+    training = torch.cat([encode(c) for c in checkpoint_clips(ckpt, unrolled=False)])
+    held_clips = _start_clips(ckpt, protocol, unrolled=False)
+    states = random_states(held_clips, protocol.n_states, protocol.ade_frames, protocol.state_seed)
+    x0 = torch.stack([s.features for s in states])  # (C, D)
+
+    def stats(d: np.ndarray) -> dict[str, float]:
+        return {
+            "median": float(np.median(d)),
+            "p90": float(np.percentile(d, 90)),
+            f"share<{near:g}cm": float((d < near).mean()),
+        }
+
+    def one_seed(seed: int) -> dict[str, float]:
+        g = torch.Generator(device=device).manual_seed(seed)
+        r = rollout(
+            ckpt, x0, protocol.apd_frames, protocol.n_samples, steps, g,
+            decode_positions=False, device=device,
+        )  # fmt: skip
+        return stats(pose_distance_to_training(ckpt, r.features.cpu(), training))
+
+    held = torch.cat([encode(c) for c in held_clips])
+    held_stats = stats(pose_distance_to_training(ckpt, held, training))
+    return {
+        "generated": metrics.over_seeds(one_seed, protocol.seeds),
+        "held-out": {k: (v, 0.0) for k, v in held_stats.items()},
     }
