@@ -8,6 +8,7 @@ import pytest
 
 from minimdm.motion import corpora
 from minimdm.motion.bvh import BVHError, load_bvh
+from minimdm.motion.skeleton import heading_angle
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +83,23 @@ def test_every_take_has_the_same_bones_in_metres(home):
     assert dash.skeleton.bone_lengths().sum() > 1.2 * ref.sum()
     thigh = ref[ds[0].skeleton.index("LowerLeg_L")]  # hip to knee
     assert 0.35 < thigh < 0.45
+
+
+def test_heading_follows_the_walk(home):
+    # The root's left axis is guessed from UpperLeg_L / UpperLeg_R (suffixes, not prefixes):
+    # a walk faces where it goes, a walk backwards the other way.
+    takes = ["dataset-1_walk_normal_001", "dataset-1_walk_sad_001", "dataset-1_walk-back_angry_001"]
+    for clip in corpora.load_corpus("bandai-namco-1", takes=takes):
+        F = clip.n_frames
+        mid = np.arange(F // 4, 3 * F // 4)
+        _, rot = clip.fk()
+        heading = heading_angle(rot[mid, 0], clip.skeleton.lateral_axis).numpy()
+        step = clip.root_pos[mid[-1], :2] - clip.root_pos[mid[0], :2]
+        travel = np.arctan2(step[1], step[0])
+        if clip.labels["content"] == "walk-back":
+            travel += np.pi
+        off = np.degrees(np.abs(np.angle(np.exp(1j * (heading - travel)))))
+        assert np.median(off) < 15, (clip.name, np.median(off))
 
 
 def test_bad_names_and_labels(home, tmp_path, monkeypatch):
