@@ -3,10 +3,12 @@
 import json
 import shutil
 
+import numpy as np
 import pytest
 
 from minimdm.motion import corpora
 from minimdm.motion.bvh import BVHError, load_bvh
+from minimdm.motion.skeleton import heading_angle
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +68,38 @@ def test_loaded_takes_carry_their_labels(home):
     assert walk.fps == 30.0 and len(walk.skeleton) == 21
     # labels survive slicing and resampling
     assert walk.slice(3, 10).labels == walk.labels
+
+
+def test_every_take_has_the_same_bones_in_metres(home):
+    # The files are in centimetres with one skeleton. A per-take guess of the units made five
+    # crouched or leaning takes (dashes, sad side steps) a third taller than the others.
+    ds = corpora.load_corpus("bandai-namco-1")
+    ref = ds["dataset-1_walk_normal_001"].skeleton.bone_lengths()
+    for clip in ds:
+        assert np.allclose(clip.skeleton.bone_lengths(), ref, atol=1e-5), clip.name
+    dash = load_bvh(
+        corpora.corpus_path("bandai-namco-1") / "data" / "dataset-1_dash_giant_001.bvh"
+    )  # the guess alone
+    assert dash.skeleton.bone_lengths().sum() > 1.2 * ref.sum()
+    thigh = ref[ds[0].skeleton.index("LowerLeg_L")]  # hip to knee
+    assert 0.35 < thigh < 0.45
+
+
+def test_heading_follows_the_walk(home):
+    # The root's left axis is guessed from UpperLeg_L / UpperLeg_R (suffixes, not prefixes):
+    # a walk faces where it goes, a walk backwards the other way.
+    takes = ["dataset-1_walk_normal_001", "dataset-1_walk_sad_001", "dataset-1_walk-back_angry_001"]
+    for clip in corpora.load_corpus("bandai-namco-1", takes=takes):
+        F = clip.n_frames
+        mid = np.arange(F // 4, 3 * F // 4)
+        _, rot = clip.fk()
+        heading = heading_angle(rot[mid, 0], clip.skeleton.lateral_axis).numpy()
+        step = clip.root_pos[mid[-1], :2] - clip.root_pos[mid[0], :2]
+        travel = np.arctan2(step[1], step[0])
+        if clip.labels["content"] == "walk-back":
+            travel += np.pi
+        off = np.degrees(np.abs(np.angle(np.exp(1j * (heading - travel)))))
+        assert np.median(off) < 15, (clip.name, np.median(off))
 
 
 def test_bad_names_and_labels(home, tmp_path, monkeypatch):

@@ -63,6 +63,27 @@ def test_animate_gif_frames_and_size(tmp_path, backend):
     assert iio.imread(two.path, index=None).shape[:3] == (4, 72, 192)
 
 
+def test_ncols_wraps_panels_into_a_grid(tmp_path):
+    # 5 motions in rows of 2: a 3 x 2 grid whose last cell is white; each character is in
+    # its own cell, in order, in its own colour
+    colors = ["real", "generated", "real", "generated", "real"]
+    anim = viz.animate(
+        [walker(6, y=0.1 * i) for i in range(5)], PARENTS, ncols=2, stride=3, size=(80, 64),
+        colors=colors, labels=list("abcde"), trail=False, out=tmp_path / "grid.gif",
+    )  # fmt: skip
+    frames = iio.imread(anim.path, index=None)
+    assert frames.shape[:3] == (2, 3 * 64, 2 * 80) and anim.size == (160, 192)
+    cells = [
+        frames[0, r * 64 : (r + 1) * 64, c * 80 : (c + 1) * 80] for r in range(3) for c in (0, 1)
+    ]
+    for cell, col in zip(cells[:5], colors, strict=True):
+        assert (blue(cell) if col == "real" else orange(cell)).sum() > 20
+        assert (orange(cell) if col == "real" else blue(cell)).sum() == 0
+    assert (cells[5] >= 250).all()  # the empty cell
+    with pytest.raises(ValueError, match="ncols"):
+        viz.animate(walker(4), PARENTS, ncols=0)
+
+
 def test_default_stride_plays_real_time_and_temp_file():
     anim = viz.animate(walker(12), PARENTS, fps=15, motion_fps=30, size=(64, 48))
     assert anim.path.exists() and anim.path.suffix == ".gif"

@@ -228,6 +228,8 @@ def _guess_lateral_axis(names: list[str], parents: list[int], rest: np.ndarray) 
             )
         if re.match(r"[lL](?=[_A-Z])", n):
             return ("R" if n[0] == "L" else "r") + n[1:]
+        if re.search(r"[_.][lL]$", n):  # Bandai-Namco's UpperLeg_L, Blender's thigh.L
+            return n[:-1] + ("R" if n[-1] == "L" else "r")
         return None
 
     pairs = [(depth(j), j, names.index(swap(n))) for j, n in enumerate(names) if swap(n) in names]

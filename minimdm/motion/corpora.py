@@ -67,6 +67,8 @@ class Corpus:
     """Bytes of the downloaded archive, or None when unknown (then not checked)."""
     sha256: str | None = None
     """SHA-256 of the downloaded archive, or None when unknown (then trusted on first use)."""
+    scale: float | None = None
+    """File units -> metres when the corpus documents its units; None guesses per take."""
 
 
 # The Bandai-Namco corpora come from GitHub's archive of the whole repository's main branch
@@ -90,6 +92,7 @@ CORPORA: dict[str, Corpus] = {
         folder="bandai-namco-1",
         url=_BANDAI_ZIP,
         member=f"{_BANDAI_ROOT}/Bandai-Namco-Research-Motiondataset-1",
+        scale=0.01,  # centimetres; a per-take guess scales crouched or leaning takes wrongly
     ),
     "bandai-namco-2": Corpus(
         name="bandai-namco-2",
@@ -101,6 +104,7 @@ CORPORA: dict[str, Corpus] = {
         folder="bandai-namco-2",
         url=_BANDAI_ZIP,
         member=f"{_BANDAI_ROOT}/Bandai-Namco-Research-Motiondataset-2",
+        scale=0.01,  # centimetres, as dataset 1
     ),
     "lafan1": Corpus(
         name="lafan1",
@@ -310,7 +314,7 @@ def load_corpus(
     if not (folder / "cfg" / "content_label.txt").exists():  # no Bandai-style labels
         if split is not None and not (BUNDLED / f"{info.folder}.split.json").exists():
             raise ValueError(f"corpus {name!r} has no fixed split; use split=None")
-        dataset = load_bvh(folder, fps=fps)
+        dataset = load_bvh(folder, fps=fps, scale=info.scale)
         if takes is not None:
             unknown = sorted(set(takes) - set(dataset.names))
             if unknown:
@@ -328,7 +332,7 @@ def load_corpus(
     contents, styles = _label_names(folder, "content"), _label_names(folder, "style")
     clips: list[Clip] = []
     for take in names:
-        clip = load_bvh(folder / "data" / f"{take}.bvh", fps=fps)
+        clip = load_bvh(folder / "data" / f"{take}.bvh", fps=fps, scale=info.scale)
         clip.labels = _labels(folder, take, contents, styles)
         clips.append(clip)
     return MotionDataset(clips)

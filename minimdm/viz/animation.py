@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from .render import _render
-from .scene import Backend, Layout, _build_scene, _to_numpy
+from .scene import Backend, Layout, _build_scene, _check_motions, _colors, _to_numpy
 
 GIF_COLORS = 64  # one global GIF palette (no flicker); 32 merged the hues of 4 characters
 
@@ -122,6 +122,7 @@ def animate(
     motion_fps: float = 30.0,
     view: tuple[float, float] = (-60.0, 15.0),
     backend: Backend = "pyvista",
+    ncols: int | None = None,
 ) -> Animation:
     """Render motions as animated skeletons to a GIF or MP4 that shows inline in Jupyter.
 
@@ -147,18 +148,47 @@ def animate(
         view: camera azimuth and elevation in degrees.
         backend: ``"pyvista"`` (falls back to matplotlib with a warning if it fails) or
             ``"matplotlib"``.
+        ncols: side by side only: wrap the panels into rows of this many (a grid; empty
+            panels of the last row are white). None: one row.
     """
-    scene = _build_scene(
-        motions, parents, labels, colors, layout, size, trail, follow, targets, motion_fps, view
-    )
-    idx = _frame_indices(len(scene.motions[0]), fps, motion_fps, stride)
+    if ncols is not None and not (isinstance(ncols, int) and ncols >= 1):
+        raise ValueError(f"ncols must be an integer >= 1 or None, got {ncols!r}")
+    ms = _check_motions(motions)
+    n = len(ms)
+    if ncols is None or layout != "side_by_side" or n <= ncols:
+        rows = [list(range(n))]
+    else:
+        rows = [list(range(r, min(r + ncols, n))) for r in range(0, n, ncols)]
+    if labels is not None and len(labels) != n:
+        raise ValueError(f"labels has {len(labels)} entries for {n} motions")
+    colors = _colors(colors, n)
+    F = max(len(m) for m in ms)
+    ms = [np.concatenate([m, np.repeat(m[-1:], F - len(m), 0)]) for m in ms]  # hold last frame
+    idx = _frame_indices(F, fps, motion_fps, stride)
+    if out is not None and Path(out).suffix.lower() not in (".gif", ".mp4"):
+        raise ValueError(f"out must end in .gif or .mp4, got {str(out)!r}")
+    grid = None
+    for row in rows:  # each row is one side-by-side scene; the rows are stacked
+        scene = _build_scene(
+            [ms[i] for i in row], parents, None if labels is None else [labels[i] for i in row],
+            [colors[i] for i in row], layout, size, trail, follow, targets, motion_fps, view,
+        )  # fmt: skip
+        frames = _render(scene, idx, backend)  # each (H, w * len(row), 3)
+        if grid is None:
+            grid = frames
+            continue
+        h, w = frames[0].shape[:2]
+        pad = grid[0].shape[1] - w  # the last row may have fewer panels
+        blank = np.full((h, pad, 3), 255, np.uint8)
+        grid = [
+            np.concatenate([g, np.concatenate([f, blank], 1)], 0)
+            for g, f in zip(grid, frames, strict=True)
+        ]
+    frames = grid
     if out is None:
         fd, out = tempfile.mkstemp(prefix="minimdm_", suffix=".gif")
         os.close(fd)
     out = Path(out)
-    if out.suffix.lower() not in (".gif", ".mp4"):
-        raise ValueError(f"out must end in .gif or .mp4, got {str(out)!r}")
-    frames = _render(scene, idx, backend)
     _write(frames, out, fps)
     h, w = frames[0].shape[:2]
     return Animation(path=out, fps=float(fps), n_frames=len(frames), size=(w, h))
