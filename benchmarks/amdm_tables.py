@@ -1,16 +1,18 @@
-"""A-MDM §7.3 on the shipped checkpoints: Tables 1-4 and the scheduled-sampling ablation.
+"""A-MDM §7.3 on the shipped checkpoints: Tables 1-4, the memorisation probe and drift.
 
 Prints one JSON line per row (config, hardware, metrics as mean and std over seeds, in cm):
 
-* ``table1``: A-MDM (x0- and eps-prediction), MVAE-style and MSE from the same fixed initial
-  states, plus the dataset;
-* ``table2``: motion continuation from the last 30 frames of every clip;
-* ``steps``: one model per T in {1, 2, 5, 10, 20, 40, 100} (``checkpoints/amdm_steps/T*``):
-  APD, ADE, FS and ms/frame at batch 1, measured in the same run;
-* ``drift``: bone error and root height over a 1,000-frame rollout with and without scheduled
-  sampling (``amdm_eps_book`` vs ``amdm_eps_noss_book``; ``amdm_book`` for reference).
+* ``table1``: A-MDM (eps-prediction, ``checkpoints/amdm``), MVAE-style and MSE, all trained on
+  the Bandai-Namco training takes, from the same fixed initial states drawn from the held-out
+  test takes, plus those takes' own row (``dataset``);
+* ``table2``: motion continuation from the last 30 frames of every held-out take;
+* ``memorisation``: the distance of generated poses to the nearest training pose, next to the
+  same distance for the held-out takes' poses (median, 90th percentile, share under 1 cm);
+* ``steps``: one model per T in {1, 2, 5, 10, 20, 40, 100} (``checkpoints/amdm_steps/T*``,
+  still trained on the DeepMimic clips): APD, ADE, FS and ms/frame at batch 1, in one run;
+* ``drift``: bone error and root height over a 1,000-frame rollout of the base model.
 
-    python benchmarks/amdm_tables.py                 # the paper's protocol, ~15 min on 2 cores
+    python benchmarks/amdm_tables.py                 # the paper's protocol, 3 seeds
     python benchmarks/amdm_tables.py --quick         # 4 states x 10 samples x 1 seed
     python benchmarks/amdm_tables.py --save benchmarks/results/amdm_tables.jsonl
 """
@@ -38,7 +40,9 @@ def cells(row: dict) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="a small protocol, for a smoke run")
-    p.add_argument("--only", nargs="+", choices=["table1", "table2", "steps", "drift"])
+    p.add_argument(
+        "--only", nargs="+", choices=["table1", "table2", "memorisation", "steps", "drift"]
+    )
     p.add_argument("--device", default="cpu")
     p.add_argument("--save", help="also append the JSON lines to this file")
     args = p.parse_args()
@@ -46,21 +50,16 @@ def main() -> None:
         protocol = evaluation.Protocol(n_states=4, n_samples=10, seeds=(0,))
     else:
         protocol = evaluation.Protocol()  # 10 states x 50 samples, 150 frames, 3 seeds
-    only = set(args.only or ["table1", "table2", "steps", "drift"])
+    only = set(args.only or ["table1", "table2", "memorisation", "steps", "drift"])
     base = {"protocol": protocol.to_dict(), "hardware": hardware(args.device), "unit": "cm"}
-    names = {
-        "A-MDM": "amdm_book",
-        "A-MDM (ε)": "amdm_eps_book",
-        "MVAE-style": "mvae_book",
-        "MSE": "mse_book",
-    }
+    names = {"A-MDM": "amdm", "MVAE-style": "mvae", "MSE": "mse"}
     models = {k: minimdm.pretrained(v, args.device) for k, v in names.items()}
 
     if "table1" in only:
         t0 = time.perf_counter()
         tab = evaluation.table1(models, protocol, with_dataset=True, device=args.device)
         for name, row in tab.items():
-            ck = names.get(name, "dataset")
+            ck = names.get(name, "held-out takes")
             emit({"table": "table1", "model": name, "checkpoint": ck, **base, **cells(row)},
                  args.save)  # fmt: skip
         print(evaluation.format_table(tab), f"\n({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -72,6 +71,15 @@ def main() -> None:
                   **cells(row)}, args.save)  # fmt: skip
         print(evaluation.format_table(tab, evaluation.TABLE2_COLUMNS), flush=True)
 
+    if "memorisation" in only:
+        t0 = time.perf_counter()
+        for name, ck in models.items():
+            probe = evaluation.memorisation_probe(ck, protocol, device=args.device)
+            for frames, row in probe.items():
+                emit({"table": "memorisation", "model": name, "frames": frames,
+                      "checkpoint": names[name], **base, **cells(row)}, args.save)  # fmt: skip
+        print(f"memorisation ({time.perf_counter() - t0:.0f} s)", flush=True)
+
     if "steps" in only:
         steps_models = {f"T={T}": minimdm.pretrained(f"amdm_steps/T{T}") for T in STEPS}
         tab = amdm_tables.steps_table(steps_models, protocol, device=args.device)
@@ -82,13 +90,11 @@ def main() -> None:
         print(evaluation.format_table(tab, cols), flush=True)
 
     if "drift" in only:
-        state = evaluation.initial_state(models["A-MDM"], "walker/0walk_forward", 20)
-        for name in ("amdm_book", "amdm_eps_book", "amdm_eps_noss_book"):
-            ck = minimdm.pretrained(name, args.device)
-            d = evaluation.drift(ck, state, n_frames=1000, n_samples=8, device=args.device)
-            emit({"table": "drift", "checkpoint": name, "start": "walker/0walk_forward:20",
-                  **base, **{k: [round(float(x), 4) for x in v] for k, v in d.items()}},
-                 args.save)  # fmt: skip
+        take, frame = "dataset-1_walk_normal_001", 20  # a held-out take
+        state = evaluation.initial_state(models["A-MDM"], take, frame)
+        d = evaluation.drift(models["A-MDM"], state, n_frames=1000, n_samples=8, device=args.device)
+        emit({"table": "drift", "checkpoint": "amdm", "start": f"{take}:{frame}", **base,
+              **{k: [round(float(x), 4) for x in v] for k, v in d.items()}}, args.save)  # fmt: skip
 
 
 if __name__ == "__main__":
