@@ -70,7 +70,7 @@ def test_loaded_takes_carry_their_labels(home):
     assert walk.slice(3, 10).labels == walk.labels
 
 
-def test_every_take_has_the_same_bones_in_metres(home):
+def test_every_take_has_the_same_bones_in_metres(home, tmp_path):
     # The files are in centimetres with one skeleton. A per-take guess of the units made five
     # crouched or leaning takes (dashes, sad side steps) a third taller than the others.
     ds = corpora.load_corpus("bandai-namco-1")
@@ -81,6 +81,15 @@ def test_every_take_has_the_same_bones_in_metres(home):
         corpora.corpus_path("bandai-namco-1") / "data" / "dataset-1_dash_giant_001.bvh"
     )  # the guess alone
     assert dash.skeleton.bone_lengths().sum() > 1.2 * ref.sum()
+    # in a folder, the crouched take takes the unit most of its files agree on
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    for take in ("dash_giant_001", "walk_normal_001", "run_sad_001"):
+        shutil.copy(
+            corpora.corpus_path("bandai-namco-1") / "data" / f"dataset-1_{take}.bvh", folder
+        )
+    for clip in load_bvh(folder):
+        assert np.allclose(clip.skeleton.bone_lengths(), ref, atol=1e-5), clip.name
     thigh = ref[ds[0].skeleton.index("LowerLeg_L")]  # hip to knee
     assert 0.35 < thigh < 0.45
 

@@ -359,7 +359,10 @@ def _first_difference(a: Skeleton, b: Skeleton) -> str:
     return f"{len(a.names)} vs {len(b.names)} joints"
 
 
-def _load_one_bvh(path: Path, fps: float | None, scale: float | None, name: str) -> Clip:
+def _load_one_bvh(
+    path: Path, fps: float | None, scale: float | None, name: str
+) -> tuple[Clip, float]:
+    """The clip of one file and the scale it used (given or guessed)."""
     names, parents, offsets, channels, frame_time, motion = _parse_bvh(_read_text(path), str(path))
     if not MIN_FPS <= 1.0 / frame_time <= MAX_FPS:
         raise BVHError(
@@ -404,7 +407,7 @@ def _load_one_bvh(path: Path, fps: float | None, scale: float | None, name: str)
     root = trans[:, 0] @ BVH_TO_WORLD.T * scale
     quats = matrix_to_quat(C @ rot @ C.T)
     clip = Clip(name, 1.0 / frame_time, skeleton, root, quats.numpy())
-    return clip if fps is None else resample_clip(clip, fps)
+    return (clip if fps is None else resample_clip(clip, fps)), float(scale)
 
 
 def load_bvh(
@@ -416,9 +419,9 @@ def load_bvh(
         path: a ``.bvh`` file or a folder (searched recursively; clip names are the relative
             paths without ``.bvh``).
         fps: resample to this rate (None keeps the file's rate).
-        scale: file units -> metres. None guesses from the rest pose: the power of ten (at
-            most 1) that brings its largest extent nearest 1.7 m, so centimetre files (LaFAN1,
-            100STYLE) get 0.01 and metre files 1.
+        scale: file units -> metres. None guesses it from the body's standing height
+            (:func:`_guess_scale`); in a folder, every file takes the guess most of its files
+            agree on (a crouched or leaning take alone would look short).
 
     The skeleton comes from the file: every ROOT/JOINT becomes a joint (End Sites are dropped),
     with any channel order. Position channels give the joint's translation (replacing its
@@ -429,12 +432,20 @@ def load_bvh(
     path = Path(path)
     with num_threads(1):  # many small ops: threads only add latency
         if not path.is_dir():
-            return _load_one_bvh(path, fps, scale, path.stem)
+            return _load_one_bvh(path, fps, scale, path.stem)[0]
         files = sorted(path.rglob("*.bvh"))
         if not files:
             raise FileNotFoundError(f"no .bvh files under {path}")
         names = [f.relative_to(path).with_suffix("").as_posix() for f in files]
-        clips = [_load_one_bvh(f, fps, scale, n) for f, n in zip(files, names, strict=True)]
+        loaded = [_load_one_bvh(f, fps, scale, n) for f, n in zip(files, names, strict=True)]
+        clips = [c for c, _ in loaded]
+        if scale is None:  # one folder, one unit: the guess most files agree on
+            scales = [s for _, s in loaded]
+            common = max(set(scales), key=scales.count)
+            clips = [
+                c if s == common else _load_one_bvh(f, fps, common, c.name)[0]
+                for f, c, s in zip(files, clips, scales, strict=True)
+            ]
         first = clips[0].skeleton
         for f, c in zip(files[1:], clips[1:], strict=True):
             sk = c.skeleton
