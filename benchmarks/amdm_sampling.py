@@ -53,11 +53,12 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     dev = args.device
 
-    book = minimdm.pretrained("amdm_book", dev)
-    models = {"amdm_book": (book.model, book.schedule(dev))}
+    book = minimdm.pretrained("amdm", dev)  # the book's base model
+    D = book.model.config.x_dim
+    models = {"amdm": (book.model, book.schedule(dev))}
     if not args.skip_paper:
         torch.manual_seed(0)
-        paper = MLPDenoiser(DenoiserConfig(183, 183, 1024, 10, 128, "eps")).to(dev).eval()
+        paper = MLPDenoiser(DenoiserConfig(D, D, 1024, 10, 128, "eps")).to(dev).eval()
         models["paper_10x1024_untrained"] = (paper, NoiseSchedule("cosine", 40, device=dev))
     for name, (model, schedule) in models.items():
         n_params = sum(p.numel() for p in model.parameters())
@@ -69,11 +70,11 @@ def main() -> None:
                   "character_frames_per_s": round(batch / ms * 1e3, 1),
                   "hardware": hardware(dev)})  # fmt: skip
 
-    state = evaluation.initial_state(book, "walk", 5)
+    state = evaluation.initial_state(book, "dataset-1_walk_normal_001", 5)  # a held-out take
     t0 = time.perf_counter()
     d = evaluation.drift(book, state, n_frames=args.frames, n_samples=4, window=1000, device=dev)
     seconds = time.perf_counter() - t0
-    emit({"bench": "stability", "model": "amdm_book", "frames": args.frames, "samples": 4,
+    emit({"bench": "stability", "model": "amdm", "frames": args.frames, "samples": 4,
           "seconds": round(seconds, 1), "ms_per_frame": round(seconds / args.frames * 1e3, 2),
           "finite": True, "window_end": d["frame"].tolist(),
           "bone_err_cm": [round(float(x), 3) for x in d["bone_err"]],

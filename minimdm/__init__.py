@@ -3,7 +3,7 @@
 The two names most readers need first::
 
     import minimdm
-    ckpt = minimdm.pretrained("amdm_book")          # the shipped A-MDM checkpoint
+    ckpt = minimdm.pretrained("amdm")               # the book's A-MDM, trained on the corpus
     motion = minimdm.rollout(ckpt, x0, n_frames=300)  # sample the future of initial states x0
 """
 
@@ -30,7 +30,7 @@ CHECKPOINT_DIR = Path(
 
 
 def pretrained(name: str, device: str = "cpu"):
-    """Load a shipped checkpoint by name, e.g. ``"amdm_book"`` or ``"amdm_steps/T5"``.
+    """Load a shipped checkpoint by name, e.g. ``"amdm"`` or ``"amdm_steps/T5"``.
 
     Each lives in ``checkpoints/<name>/`` and records the command that made it in its metadata
     (``checkpoint.metadata["command"]``).

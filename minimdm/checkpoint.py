@@ -229,7 +229,7 @@ def save_checkpoint(
     """Save ``model`` and its metadata atomically; returns the files written.
 
     Args:
-        path: a folder (files ``model.*`` inside it) or a stem such as ``checkpoints/amdm_book``.
+        path: a folder (files ``model.*`` inside it) or a stem such as ``checkpoints/amdm``.
         model: the network to sample with (pass the EMA copy when there is one).
         metadata: JSON-able facts about the checkpoint. By convention: ``config`` (the training
             config), ``config_file``, ``feature_layout``, ``skeleton``, ``normalizer``,

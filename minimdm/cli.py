@@ -2,9 +2,9 @@
 
 ::
 
-    minimdm train configs/amdm_book.yaml                 # -> checkpoints/amdm_book/
-    minimdm sample --checkpoint checkpoints/amdm_book --frames 300 --out walk.gif
-    minimdm eval --checkpoint checkpoints/amdm_book --json
+    minimdm train configs/amdm.yaml                      # -> checkpoints/amdm/
+    minimdm sample --checkpoint checkpoints/amdm --frames 300 --out walk.gif
+    minimdm eval --checkpoint checkpoints/amdm --json
     minimdm data list                                    # known corpora, licences, present?
     minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
 
@@ -110,6 +110,9 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise SystemExit(f"--frames must be >= 1, got {args.frames}")
     ckpt = load_checkpoint(args.checkpoint, device=args.device)
+    if args.start is None:
+        split = "test" if ckpt.config.get("split") == "train" else "train"
+        args.start = evaluation.checkpoint_clips(ckpt, split=split)[0].name
     name, frame = _parse_start(args.start)
     state = evaluation.initial_state(ckpt, name, frame)
     g = torch.Generator(device=args.device).manual_seed(args.seed)
@@ -198,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train a model from a YAML config (resumes if it can)")
-    t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm_book.yaml")
+    t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm.yaml")
     t.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
     t.add_argument("--steps", type=int, help="override total_steps")
     t.add_argument(
@@ -216,7 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output .npz, .bvh, .gif or .mp4")
     s.add_argument("--samples", type=int, default=1, help="futures from the start pose")
     s.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
-    s.add_argument("--start", default="walk", help="start clip[:frame], e.g. run:10")
+    s.add_argument(
+        "--start",
+        default=None,
+        help="start clip[:frame], e.g. dataset-1_run_normal_001:10 (default: the first held-out "
+        "take, or the first training clip)",
+    )
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--device", default="cpu")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
