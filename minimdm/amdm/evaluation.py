@@ -21,6 +21,7 @@ stored benchmark rows are :mod:`minimdm.studies.amdm_tables`.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
@@ -142,14 +143,17 @@ def checkpoint_clips(
         unrolled: unroll looping clips as training did (DeepMimic only).
         split: ``"train"`` (the clips it learnt from) or ``"test"`` (the test takes of the
             corpus's fixed split; only for a checkpoint trained on its ``"train"`` split).
+
+    The datasets are loaded once per process and shared: treat them as read-only.
     """
     cfg = ckpt.config if ckpt is not None else {}
     data = ckpt.metadata.get("data", {}) if ckpt is not None else {}
     corpus, trained_on = cfg.get("corpus", "deepmimic"), cfg.get("split")
     loop = cfg.get("loop_frames", 150) if unrolled else None
+    fps = float(cfg.get("fps", 30.0))
     if split == "train":
         names = data.get("clips") or cfg.get("clips")
-        return load_motion(corpus, trained_on, cfg.get("fps", 30.0), names, loop)
+        return _motion(corpus, trained_on, fps, tuple(names) if names else None, loop)
     if split != "test":
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     if trained_on != "train":
@@ -157,7 +161,14 @@ def checkpoint_clips(
             f"checkpoint was trained on {corpus!r} with split {trained_on!r}: it has no "
             "held-out takes (train on split: train to keep the test takes out)"
         )
-    return load_motion(corpus, "test", cfg.get("fps", 30.0), None, loop)
+    return _motion(corpus, "test", fps, None, loop)
+
+
+@functools.lru_cache(maxsize=8)
+def _motion(corpus: str, split: Any, fps: float, names: Any, loop: Any) -> MotionDataset:
+    """:func:`load_motion`, remembered: the protocol asks for the same clips many times (a
+    corpus takes seconds to load). The clips are shared, so callers must not change them."""
+    return load_motion(corpus, split, fps, list(names) if names else None, loop)
 
 
 def _start_clips(ckpt: Checkpoint, protocol: Protocol, unrolled: bool = True) -> MotionDataset:
