@@ -279,9 +279,7 @@ def test_interrupted_save_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
 def test_configs_load_and_build(tmp_path):
     # aamdm_*.yaml are AAMDM's own configs (tests/test_aamdm.py loads them).
     files = sorted(f for f in (ROOT / "configs").glob("*.yaml") if not f.name.startswith("aamdm"))
-    assert {"amdm.yaml", "amdm_paper.yaml", "mse.yaml", "mvae.yaml"} <= {
-        f.name for f in files
-    }
+    assert {"amdm.yaml", "amdm_paper.yaml", "mse.yaml", "mvae.yaml"} <= {f.name for f in files}
     for f in files:
         cfg = load_config(f)
         assert cfg.config_file.endswith(f.name)
