@@ -15,15 +15,25 @@ Prints one JSON line per measurement. Not a test.
   against linear interpolation in feature space.
 * ``speed``: ms/frame of each technique for one character on the CPU.
 
-    python benchmarks/control.py                         # the shipped book checkpoints
-    python benchmarks/control.py --quick                 # fewer runs, ~3 min
+The start state is a frame of a take of the A-MDM checkpoint's own data: for the corpus models
+(the default, trained on the training takes of ``bandai-namco-1``) frame 20 of the held-out
+test take ``dataset-1_walk_normal_001``, a normal walk; for a DeepMimic checkpoint frame 20 of
+``walker/0walk_forward``. Either way it is placed at the origin heading +x. Inpainting and
+inbetweening follow cases built from DeepMimic clips (``jump``, ``dance_b``, ``neck``), so they
+run only with DeepMimic checkpoints:
+
+    python benchmarks/control.py                         # target reaching and speed, corpus models
+    python benchmarks/control.py --quick                 # fewer runs
     python benchmarks/control.py --amdm /tmp/amdm --mse /tmp/mse --mvae /tmp/mvae
     python benchmarks/control.py --only speed
+    python benchmarks/control.py --only inpaint inbetween --amdm pretrained:amdm_book \\
+        --extra amdm_eps=pretrained:amdm_eps_book          # chapter 6 (DeepMimic models)
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import numpy as np
@@ -31,13 +41,17 @@ import torch
 from common import emit, hardware
 
 from minimdm import control as C
+from minimdm.amdm import evaluation
 from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import load_checkpoint
-from minimdm.motion import data, metrics
+from minimdm.motion import metrics
 
-START_CLIP, START_FRAME = "walker/0walk_forward", 20
-"""The fixed start state: a walking pose at the origin, heading +x, where the data branch
-(walk on, turn left, turn right: chapter 3)."""
+START = {
+    "deepmimic": ("walker/0walk_forward", 20),
+    "bandai-namco-1": ("dataset-1_walk_normal_001", 20),
+}
+"""The fixed start state per corpus (take, frame): a walking pose, placed at the origin heading
++x. For the corpus it is a held-out test take, which no model has seen."""
 
 
 def load(spec: str):
@@ -61,6 +75,14 @@ def quality(pos: torch.Tensor, skeleton, offsets) -> dict:
 
 
 # --------------------------------------------------------------------------- target reaching
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> list[float]:
+    """95% Wilson score interval of a success rate ``successes / n`` (runs are Bernoulli)."""
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [round(max(0.0, centre - half), 3), round(min(1.0, centre + half), 3)]
 
 
 def stat(value: torch.Tensor, ok: torch.Tensor, digits: int) -> float | None:
@@ -91,6 +113,8 @@ def target_reaching(models: dict, start, args) -> None:
             "bench": "target_reaching", "model": name, "runs": len(goals), "pool": args.pool,
             "horizon": args.horizon, "max_frames": args.max_frames, "radius_m": 0.15,
             "success_rate": round(float(ok.double().mean()), 3),
+            "successes": int(ok.sum()),
+            "success_ci95": wilson_interval(int(ok.sum()), len(goals)),
             "frames_to_target_mean": stat(done[ok].double().mean(), ok, 1),
             "frames_to_target_median": stat(done[ok].double().median(), ok, 1),
             "path_over_distance": stat((length[ok] / dist[ok]).mean(), ok, 2),
@@ -224,13 +248,20 @@ def speed(cm, start, args) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--amdm", default="pretrained:amdm_book")
-    p.add_argument("--mvae", default="pretrained:mvae_book")
-    p.add_argument("--mse", default="pretrained:mse_book")
+    p.add_argument("--amdm", default="pretrained:amdm")
+    p.add_argument("--mvae", default="pretrained:mvae")
+    p.add_argument("--mse", default="pretrained:mse")
     p.add_argument("--extra", nargs="*", default=[], metavar="NAME=PATH",
                    help="more models (diffusion ones also inpaint and inbetween)")  # fmt: skip
-    p.add_argument("--only", nargs="+", default=["target", "inpaint", "inbetween", "speed"],
-                   choices=["target", "inpaint", "inbetween", "speed"])  # fmt: skip
+    p.add_argument("--only", nargs="+", default=["target", "speed"],
+                   choices=["target", "inpaint", "inbetween", "speed"],
+                   help="inpaint and inbetween need DeepMimic checkpoints")  # fmt: skip
+    p.add_argument(
+        "--start",
+        default=None,
+        metavar="TAKE@FRAME",
+        help="start state (default: START of the A-MDM checkpoint's corpus)",
+    )
     p.add_argument("--runs", type=int, default=32, help="target-reaching runs per model")
     p.add_argument("--pool", type=int, default=32, help="P (the paper: 100)")
     p.add_argument("--horizon", type=int, default=1, help="H (the paper: 1)")
@@ -248,33 +279,51 @@ def main() -> None:
         args.runs, args.max_frames, args.samples = 16, 300, 4
         args.inpaint_frames, args.repeats = 120, 2
     torch.set_num_threads(args.threads)
-    clips = data.load_clips(fps=30, loop_frames=150)
-    skeleton = clips.skeleton
-    walk_pos = torch.cat([c.fk()[0] for c in clips if "walk" in c.name])
-    offsets = metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices)
-    amdm = C.as_control_model(load(args.amdm))
-    start = C.clip_frame(clips[START_CLIP], START_FRAME, amdm.layout)
-    emit({"bench": "config", **vars(args), **hardware()})
-    data_pos = torch.stack([c.fk()[0][:150].float() for c in clips
-                            if "walk" in c.name and c.n_frames >= 150])  # fmt: skip
-    emit({"bench": "data_reference", "clips": "walking", **quality(data_pos, skeleton, offsets)})
+    amdm_ckpt = load(args.amdm)
+    corpus = amdm_ckpt.config.get("corpus") or "deepmimic"
+    editing = {"inpaint", "inbetween"} & set(args.only)
+    if editing and corpus != "deepmimic":
+        p.error(
+            f"--only {' '.join(sorted(editing))} follows DeepMimic cases (jump, dance_b, neck), "
+            f"but --amdm {args.amdm} was trained on {corpus!r}: pass DeepMimic checkpoints, e.g. "
+            "--amdm pretrained:amdm_book --extra amdm_eps=pretrained:amdm_eps_book"
+        )
+    if args.start is None:
+        if corpus not in START:
+            p.error(f"no default start state for corpus {corpus!r}: pass --start TAKE@FRAME")
+        args.start = "@".join(map(str, START[corpus]))
+    take, frame = args.start.rsplit("@", 1)
+    amdm = C.as_control_model(amdm_ckpt)
+    start = evaluation.initial_state(amdm_ckpt, take, int(frame)).features  # (D,)
+    emit({"bench": "config", **vars(args), "corpus": corpus, **hardware()})
+    clips = evaluation.checkpoint_clips(amdm_ckpt)  # the training clips, as training saw them
     extras = {}
     for item in args.extra:
         name, spec = item.split("=", 1)
         extras[name] = C.as_control_model(load(spec))
-    diffusion = {"amdm": amdm, **{k: v for k, v in extras.items() if v.is_diffusion}}
     if "target" in args.only:
         models = {"amdm": amdm, "mvae": C.as_control_model(load(args.mvae))}
         mse = load(args.mse)
         models["mse"] = C.as_control_model(mse)
-        models["mse+gauss"] = C.as_control_model(mse, noise=C.regressor_noise(mse, clips))
+        models["mse+gauss"] = C.as_control_model(
+            mse, noise=C.regressor_noise(mse, evaluation.checkpoint_clips(mse))
+        )
         models.update(extras)
         target_reaching(models, start, args)
-    for label, cm in diffusion.items():
-        if "inpaint" in args.only:
-            inpainting(label, cm, start, skeleton, offsets, args)
-        if "inbetween" in args.only:
-            inbetweening(label, cm, clips, skeleton, offsets, args)
+    if editing:
+        skeleton = clips.skeleton
+        walk_pos = torch.cat([c.fk()[0] for c in clips if "walk" in c.name])
+        offsets = metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices)
+        data_pos = torch.stack([c.fk()[0][:150].float() for c in clips
+                                if "walk" in c.name and c.n_frames >= 150])  # fmt: skip
+        emit({"bench": "data_reference", "clips": "walking",
+              **quality(data_pos, skeleton, offsets)})  # fmt: skip
+        diffusion = {"amdm": amdm, **{k: v for k, v in extras.items() if v.is_diffusion}}
+        for label, cm in diffusion.items():
+            if "inpaint" in args.only:
+                inpainting(label, cm, start, skeleton, offsets, args)
+            if "inbetween" in args.only:
+                inbetweening(label, cm, clips, skeleton, offsets, args)
     if "speed" in args.only:
         speed(amdm, start, args)
 
