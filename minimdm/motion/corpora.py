@@ -315,20 +315,12 @@ def load_corpus(
         if split is not None and not (BUNDLED / f"{info.folder}.split.json").exists():
             raise ValueError(f"corpus {name!r} has no fixed split; use split=None")
         dataset = load_bvh(folder, fps=fps, scale=info.scale)
-        if takes is not None:
-            unknown = sorted(set(takes) - set(dataset.names))
-            if unknown:
-                raise ValueError(f"takes {unknown[:3]} are not in corpus {name!r}")
-            dataset = MotionDataset([c for c in dataset if c.name in set(takes)])
-        return dataset
+        keep = _only(dataset.names, takes, f"corpus {name!r}")
+        return MotionDataset([c for c in dataset if c.name in set(keep)])
     names = sorted(p.stem for p in (folder / "data").glob("*.bvh"))
     if split is not None:
         names = corpus_split(name)[split]
-    if takes is not None:
-        unknown = sorted(set(takes) - set(names))
-        if unknown:
-            raise ValueError(f"takes {unknown[:3]} are not in corpus {name!r} (split {split})")
-        names = [n for n in names if n in set(takes)]
+    names = _only(names, takes, f"corpus {name!r} (split {split})")
     contents, styles = _label_names(folder, "content"), _label_names(folder, "style")
     clips: list[Clip] = []
     for take in names:
@@ -375,9 +367,16 @@ def load_motion(
     if split is not None:
         raise ValueError(f"a BVH folder has no fixed split; use split: null, got {split!r}")
     dataset = load_bvh(path, fps=fps)
-    if names is not None:
-        unknown = sorted(set(names) - set(dataset.names))
-        if unknown:
-            raise ValueError(f"clips {unknown[:3]} are not in {path}")
-        dataset = MotionDataset([c for c in dataset if c.name in set(names)])
-    return dataset
+    keep = _only(dataset.names, names, str(path))
+    return MotionDataset([c for c in dataset if c.name in set(keep)])
+
+
+def _only(have: list[str], wanted: list[str] | None, where: str) -> list[str]:
+    """The names of ``have`` that are ``wanted`` (all when None), in ``have``'s order; a wanted
+    name that is missing is an error naming ``where``."""
+    if wanted is None:
+        return list(have)
+    unknown = sorted(set(wanted) - set(have))
+    if unknown:
+        raise ValueError(f"takes {unknown[:3]} are not in {where}")
+    return [n for n in have if n in set(wanted)]
