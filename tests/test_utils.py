@@ -94,6 +94,24 @@ def test_chapter_4_tables_from_the_stored_rows():
         read_results(RESULTS, "table9")
 
 
+def test_read_results_names_rows_by_several_fields(tmp_path):
+    """Memorisation rows are told apart by model and frames; the steps sweep by T."""
+    import json
+
+    cell = {"mean": 1.5, "std": 0.25}
+    lines = [
+        {"table": "memorisation", "model": "A-MDM", "frames": "generated", "median": cell},
+        {"table": "memorisation", "model": "A-MDM", "frames": "held-out", "median": cell},
+        {"table": "steps", "T": 5, "APD": cell, "ms/frame": {"mean": 2.0, "std": 0.0}},
+    ]
+    path = tmp_path / "rows.jsonl"
+    path.write_text("\n".join(json.dumps(r) for r in lines))
+    rows = read_results(path, "memorisation", key=("model", "frames"))
+    assert list(rows) == ["A-MDM, generated", "A-MDM, held-out"]
+    assert rows["A-MDM, held-out"] == {"median": (1.5, 0.25)}
+    assert read_results(path, "steps", key="T") == {"5": {"APD": (1.5, 0.25), "ms/frame": (2.0, 0.0)}}
+
+
 def test_num_threads_sets_and_restores_even_on_errors():
     before = torch.get_num_threads()
     with num_threads(1):
