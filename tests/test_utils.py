@@ -109,7 +109,9 @@ def test_read_results_names_rows_by_several_fields(tmp_path):
     rows = read_results(path, "memorisation", key=("model", "frames"))
     assert list(rows) == ["A-MDM, generated", "A-MDM, held-out"]
     assert rows["A-MDM, held-out"] == {"median": (1.5, 0.25)}
-    assert read_results(path, "steps", key="T") == {"5": {"APD": (1.5, 0.25), "ms/frame": (2.0, 0.0)}}
+    assert read_results(path, "steps", key="T") == {
+        "5": {"APD": (1.5, 0.25), "ms/frame": (2.0, 0.0)}
+    }
 
 
 def test_num_threads_sets_and_restores_even_on_errors():
