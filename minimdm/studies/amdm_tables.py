@@ -44,12 +44,22 @@ def steps_table(
     return table
 
 
-def read_results(path: str | Path, table: str, key: str = "model") -> dict[str, dict]:
+def read_results(
+    path: str | Path, table: str, key: str | tuple[str, ...] = "model"
+) -> dict[str, dict]:
     """Rows of one table from a JSON-lines file written by ``benchmarks/amdm_tables.py``.
+
+    Args:
+        path: the JSON-lines file.
+        table: which table's rows (``"table1"``, ``"table2"``, ``"memorisation"``, ``"steps"``).
+        key: the field that names a row (``"T"`` for the steps sweep), or several fields whose
+            values are joined with ", " (``("model", "frames")`` for the memorisation probe,
+            whose rows are "A-MDM, generated", "A-MDM, held-out", ...).
 
     Returns ``{row name: {metric: (mean, std)}}`` with the metrics in the order of Table 1,
     ready for :func:`minimdm.utils.format_table`.
     """
+    keys = (key,) if isinstance(key, str) else tuple(key)
     out: dict[str, dict] = {}
     for line in Path(path).read_text().splitlines():
         rec = json.loads(line)
@@ -59,7 +69,7 @@ def read_results(path: str | Path, table: str, key: str = "model") -> dict[str, 
                  and set(v) == {"mean", "std"}}  # fmt: skip
         order = [c for c in TABLE1_COLUMNS if c in cells]
         order += [c for c in cells if c not in TABLE1_COLUMNS]
-        out[str(rec.get(key))] = {c: cells[c] for c in order}
+        out[", ".join(str(rec.get(k)) for k in keys)] = {c: cells[c] for c in order}
     if not out:
         raise ValueError(f"{path} holds no rows of table {table!r}")
     return out
