@@ -126,7 +126,8 @@ def migrate_squ9(path: Path) -> dict:
 
 
 def main() -> None:
-    amdm = [CKPT / n / "model" for n in ("amdm_book", "amdm_eps_book", "amdm_eps_noss_book")]
+    # (it also migrated amdm_eps_book and amdm_eps_noss_book, since retired)
+    amdm = [CKPT / n / "model" for n in ("amdm_book",)]
     amdm += sorted((CKPT / "amdm_steps").glob("T*/model.safetensors"))
     for path in amdm:
         print(json.dumps(migrate_amdm(Path(str(path)).with_suffix(""))), flush=True)
