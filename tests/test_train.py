@@ -199,6 +199,28 @@ def test_student_forcing_feeds_the_models_own_prediction():
     assert info["student_frac"] == pytest.approx(float(from_model))
 
 
+def test_teacher_weight_adds_the_teacher_forced_loss_to_student_forcing():
+    windows = make_windows(synthetic_features(), 3)[:32]  # (32, 4, D)
+    g = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    spy = SpyRegressor()
+    student, _ = window_loss(spy, windows, 1.0, g, kind="mse")
+    teacher, _ = window_loss(spy, windows, 0.0, g, kind="mse")
+    n = len(spy.conds)
+    both, _ = window_loss(spy, windows, 1.0, g, kind="mse", teacher_weight=0.5)
+    assert float(both) == pytest.approx(float(student) + 0.5 * float(teacher), rel=1e-6)
+    # the added term is one batch of every frame from its ground-truth predecessor
+    assert len(spy.conds) == n + 3 + 1
+    assert torch.equal(spy.conds[-1], windows[:, :-1].reshape(-1, D))
+    # pure teacher forcing is unchanged by it, and a negative weight is refused
+    again, _ = window_loss(spy, windows, 0.0, g, kind="mse", teacher_weight=0.5)
+    assert float(again) == pytest.approx(float(teacher))
+    with pytest.raises(ValueError, match="teacher_weight"):
+        window_loss(spy, windows, 1.0, g, kind="mse", teacher_weight=-1.0)
+    with pytest.raises(ValueError, match="teacher_weight must be a finite float >= 0"):
+        TrainConfig(teacher_weight=float("nan"))
+
+
 def small_model():
     torch.manual_seed(0)
     return MLPDenoiser(DenoiserConfig(D, D, width=16, depth=3, time_dim=8))

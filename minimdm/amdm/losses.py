@@ -73,6 +73,7 @@ def window_loss(
     predicts: str = "eps",
     kl_beta: float = 0.2,
     clip_x0: Any = None,
+    teacher_weight: float = 0.0,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -85,9 +86,14 @@ def window_loss(
     For A-MDM the prediction fed back is the reconstruction :math:`\\hat x_0` at the noise level
     drawn for the loss, as in the paper. With eps-prediction it divides by
     :math:`\\sqrt{\\bar\\alpha_t}`, which is tiny at the noisiest levels: the clamp keeps it
-    bounded, and x0-prediction avoids the division. Returns the mean
-    loss over frames and samples, and the fraction of student conditions used. With
-    ``p_student = 0`` all frames run as one batch.
+    bounded, and x0-prediction avoids the division.
+
+    ``teacher_weight > 0`` adds, while ``p_student > 0``, that weight times the teacher-forced
+    loss of the same windows, as the official A-MDM trainer does at every student step: the
+    fit to ground-truth conditions is kept while the model learns to recover from its own.
+
+    Returns the mean loss over frames and samples, and the fraction of student conditions
+    used. With ``p_student = 0`` all frames run as one batch.
     """
     if windows.dim() != 3 or windows.shape[1] < 2:
         raise ValueError(
@@ -95,12 +101,17 @@ def window_loss(
         )
     B, n1, D = windows.shape
     bounds = clip_bounds(clip_x0, D, windows.device, windows.dtype)
+    if teacher_weight < 0:
+        raise ValueError(f"teacher_weight must be >= 0, got {teacher_weight}")
     kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
-    if p_student <= 0:
+
+    def teacher_loss() -> Tensor:  # every frame from its ground-truth predecessor, one batch
         x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
         cond = windows[:, :-1].reshape(B * (n1 - 1), D)
-        loss, _ = frame_loss(model, x, cond, generator, **kw)
-        return loss.mean(), {"student_frac": 0.0}
+        return frame_loss(model, x, cond, generator, **kw)[0].mean()
+
+    if p_student <= 0:
+        return teacher_loss(), {"student_frac": 0.0}
     cond = windows[:, 0]  # (B, D)
     losses, n_student = [], 0
     for f in range(1, n1):
@@ -113,7 +124,10 @@ def window_loss(
             n_student += int(coin.sum())
             cond = torch.where(coin[:, None], pred, windows[:, f])
     frac = n_student / (B * max(n1 - 2, 1))
-    return torch.stack(losses).mean(), {"student_frac": frac}
+    loss = torch.stack(losses).mean()
+    if teacher_weight > 0:
+        loss = loss + teacher_weight * teacher_loss()
+    return loss, {"student_frac": frac}
 
 
 def make_windows(features: Sequence[Tensor | np.ndarray], n: int) -> Tensor:

@@ -307,6 +307,7 @@ def _train(
         kl_beta=config.kl_beta,
         clip_x0=clip_x0,
     )
+    train_kw = dict(loss_kw, teacher_weight=config.teacher_weight)
 
     # Built-in evaluation: teacher-forced loss on fixed windows with its own generator, on the
     # training takes (eval_loss) and, when the config trains on a split, the test takes.
@@ -365,7 +366,7 @@ def _train(
             p = student_probability(config, step)
             B, W = config.batch_size // world.size, windows.shape[0]  # this process's share
             idx = torch.randint(W, (B,), generator=gen, device=device)
-            loss, info = window_loss(trained, windows[idx], p, gen, **loss_kw)
+            loss, info = window_loss(trained, windows[idx], p, gen, **train_kw)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
             optimizer_step(opt, loss, params, config.grad_clip)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 
@@ -57,6 +58,9 @@ class TrainConfig:
     """Steps of pure teacher forcing (student probability 0)."""
     ramp_steps: int = 500
     """Steps over which the student probability rises linearly from 0 to 1."""
+    teacher_weight: float = 0.0
+    """Weight of a teacher-forced loss added while the student probability is above 0, as in
+    the official A-MDM trainer (student loss + teacher loss at every rollout step); 0: none."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -103,6 +107,10 @@ class TrainConfig:
             raise ValueError(
                 f"teacher_steps and ramp_steps must be >= 0, got {self.teacher_steps}, "
                 f"{self.ramp_steps}"
+            )
+        if not (self.teacher_weight >= 0 and math.isfinite(self.teacher_weight)):
+            raise ValueError(
+                f"teacher_weight must be a finite float >= 0, got {self.teacher_weight}"
             )
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
