@@ -19,11 +19,16 @@ from minimdm.amdm.train import (
     resolve_clip_x0,
     train_amdm,
 )
+from minimdm.amdm.train_config import load_config
 from minimdm.checkpoint import load_checkpoint, save_checkpoint, update_metadata
 from minimdm.diffusion import clamp_share, clip_bounds
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = sorted(p.with_suffix("") for p in (ROOT / "checkpoints").rglob("*.safetensors"))
+SHIPPED = sorted(  # the weights; a local resumable training state is not shipped
+    p.with_suffix("")
+    for p in (ROOT / "checkpoints").rglob("*.safetensors")
+    if not p.name.endswith(".train.safetensors")
+)
 
 
 def frames(n_clips=3, n=60, D=6, seed=0) -> list[np.ndarray]:
@@ -107,19 +112,23 @@ def _sampling_clamp(ck):
     return getattr(getattr(model, "config", None), "clip_x0", None)
 
 
-def _amdm_with_clamp(path: Path) -> bool:
+def _amdm_with_range_clamp(path: Path) -> bool:
     meta = json.loads(path.with_suffix(".json").read_text())
-    return bool((meta.get("diffusion") or {}).get("clip_x0"))
+    return isinstance((meta.get("diffusion") or {}).get("clip_x0"), list)
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_shipped_checkpoint_loads_and_its_clamp_is_a_valid_range(path):
     ck = load_checkpoint(path)
     clamp = _sampling_clamp(ck)
-    assert clamp is None or isinstance(clamp, list)  # no symmetric ±c box is left
-    if clamp is not None:
+    if isinstance(clamp, list):  # a per-feature (lo, hi) range
         dim = len(clamp[0])
         assert clip_bounds(clamp, dim) is not None
+    else:  # none, or a symmetric box that the checkpoint's own config file asks for
+        assert clamp is None or clamp > 0
+        config_file = ck.config.get("config_file")
+        if "diffusion" in ck.metadata and config_file and (ROOT / config_file).exists():
+            assert load_config(ROOT / config_file).clip_x0 == clamp
 
 
 _FRAMES: dict[str, torch.Tensor] = {}
@@ -127,7 +136,7 @@ _FRAMES: dict[str, torch.Tensor] = {}
 
 @pytest.mark.parametrize(
     "path",
-    [p for p in SHIPPED if _amdm_with_clamp(p)],
+    [p for p in SHIPPED if _amdm_with_range_clamp(p)],
     ids=lambda p: p.relative_to(ROOT).as_posix(),
 )
 def test_amdm_checkpoints_clamp_covers_their_training_frames(path):

@@ -448,8 +448,10 @@ def checkpoint_clamp_share(
     """The share of a checkpoint's training frames that its x0 clamp would change.
 
     ``clip_x0="checkpoint"`` takes the checkpoint's ``diffusion.clip_x0``; pass another value
-    (e.g. the old 5.0) to compare. ``frames`` default to :func:`checkpoint_training_frames`.
-    A frame outside the clamp cannot come out of the sampler, so this should be 0.
+    (e.g. 5.0, or a per-feature range) to compare. ``frames`` default to
+    :func:`checkpoint_training_frames`. A frame outside the clamp cannot come out of the sampler
+    unchanged: 0 for the training range (``clip_x0: data``), more for a tighter box, which in
+    exchange keeps rollouts on the data (chapter 3).
     """
     if clip_x0 == "checkpoint":
         clip_x0 = (ckpt.metadata.get("diffusion") or {}).get("clip_x0")
