@@ -126,12 +126,11 @@ def migrate_squ9(path: Path) -> dict:
 
 
 def main() -> None:
-    # (it also migrated amdm_eps_book and amdm_eps_noss_book, since retired)
-    amdm = [CKPT / n / "model" for n in ("amdm_book",)]
-    amdm += sorted((CKPT / "amdm_steps").glob("T*/model.safetensors"))
+    # (it also migrated amdm_book, aamdm_book, amdm_eps_book and amdm_eps_noss_book, since
+    # retired; the book's corpus models were trained with their clamps)
+    amdm = sorted((CKPT / "amdm_steps").glob("T*/model.safetensors"))
     for path in amdm:
         print(json.dumps(migrate_amdm(Path(str(path)).with_suffix(""))), flush=True)
-    print(json.dumps(migrate_aamdm_motion(CKPT / "aamdm_book" / "model")), flush=True)
     print(json.dumps(migrate_squ9(CKPT / "aamdm_squ9" / "aamdm")), flush=True)
 
 

@@ -1,17 +1,19 @@
 """Motion: A-MDM at 5 steps (DDIM) and at its full T, against AAMDM (3 + 2), in one run.
 
-AAMDM §4.1 (Table 1) on the DeepMimic clips. Every method rolls out the same initial frames
-(:data:`minimdm.aamdm.eval.INITIAL_CLIPS`) with the same seed; one JSON line per method:
+AAMDM §4.1 (Table 1) on the data the AAMDM checkpoint was trained on: for the book's models
+(``checkpoints/amdm`` and ``checkpoints/aamdm``, both trained on the Bandai-Namco training takes)
+every method rolls out frame 10 of each held-out test take with the same seed (a DeepMimic
+checkpoint starts from :data:`minimdm.aamdm.eval.INITIAL_CLIPS`); one JSON line per method:
 
     study, method, network_calls, APD, FS, Bone.Err, Jnt.Accel, DIV, FD, fps, rollout_s
 
-then the dataset's own values (the target of FS, Jnt.Accel and DIV) and, with --guidance, the
+then the held-out takes' own values (the target of FS, Jnt.Accel and DIV) and, with --guidance, the
 root-direction control of §3.5 (eq. 13): heading tracking error with and without guidance.
 ``fps`` is frames per second for one character (batch 1, one CPU thread or the GPU). Not a test.
 
     python benchmarks/motion_acceleration.py                       # ~15 s on 1 CPU thread
     python benchmarks/motion_acceleration.py --guidance
-    python benchmarks/motion_acceleration.py --amdm /tmp/amdm --aamdm checkpoints/aamdm_book
+    python benchmarks/motion_acceleration.py --amdm /tmp/amdm --aamdm checkpoints/aamdm
     python benchmarks/motion_acceleration.py --device cuda
 """
 
@@ -30,20 +32,18 @@ from minimdm.studies.aamdm_motion import dataset_quality, guidance_study, motion
 
 
 def load_amdm(where: str, device: str):
-    """``pretrained`` (minimdm.pretrained("amdm_book")) or a checkpoint path."""
+    """``pretrained`` (minimdm.pretrained("amdm"), the book's base model) or a checkpoint path."""
     if where == "pretrained":
         import minimdm
 
-        if not hasattr(minimdm, "pretrained"):
-            raise SystemExit("minimdm.pretrained is not available yet: pass --amdm PATH")
-        return minimdm.pretrained("amdm_book", device=device)
+        return minimdm.pretrained("amdm", device=device)
     return load_checkpoint(where, device=device)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--amdm", default="pretrained", help="A-MDM checkpoint ('pretrained': book)")
-    p.add_argument("--aamdm", default="checkpoints/aamdm_book", help="AAMDM checkpoint folder")
+    p.add_argument("--aamdm", default="checkpoints/aamdm", help="AAMDM checkpoint folder")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     p.add_argument("--frames", type=int, default=120, help="frames per rollout")
@@ -56,8 +56,9 @@ def main() -> None:
     if args.device == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda asked for, but torch.cuda.is_available() is False")
     amdm = load_amdm(args.amdm, args.device)
-    aamdm = load_checkpoint(args.aamdm, device=args.device).model
-    data = load_motion_data(AAMDMTrainConfig(**_data_fields(aamdm)))
+    aamdm_ckpt = load_checkpoint(args.aamdm, device=args.device)
+    aamdm = aamdm_ckpt.model
+    data = load_motion_data(AAMDMTrainConfig(**_data_fields(aamdm_ckpt)))
     hw = hardware(args.device)
     rows, _ = motion_comparison(
         amdm, aamdm, data, args.frames, args.samples, seed=args.seed,
@@ -73,9 +74,13 @@ def main() -> None:
     print("done", file=sys.stderr)
 
 
-def _data_fields(model) -> dict:
-    """The data settings the AAMDM checkpoint was trained with (horizons)."""
-    return {"horizons": list(model.config.horizons)}
+def _data_fields(ckpt) -> dict:
+    """The data to start from: a corpus checkpoint's held-out takes, else its training clips."""
+    cfg = ckpt.config
+    fields = {"horizons": list(ckpt.model.config.horizons)}
+    if cfg.get("split") == "train":
+        fields.update(corpus=cfg["corpus"], split="test", loop_frames=None)
+    return fields
 
 
 if __name__ == "__main__":

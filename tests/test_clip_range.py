@@ -157,7 +157,7 @@ def test_aamdm_checkpoints_clamp_covers_their_training_data():
     from minimdm.aamdm.train import GANConfig, PolishConfig
     from minimdm.studies.squ9_acceleration import Squ9Study, Squ9StudyConfig
 
-    ck = load_checkpoint(ROOT / "checkpoints" / "aamdm_book")
+    ck = load_checkpoint(ROOT / "checkpoints" / "aamdm")
     assert clamp_share(ck.model.transition.config.clip_x0, checkpoint_training_xz(ck)) == 0.0
     ck = load_checkpoint(ROOT / "checkpoints" / "aamdm_squ9" / "aamdm")
     cfg = dict(ck.metadata["study_config"])

@@ -16,7 +16,7 @@ from minimdm.amdm.train import TrainConfig
 from minimdm.config import from_dict, load_config, with_changes
 
 ROOT = Path(__file__).resolve().parents[1]
-BOOK = str(ROOT / "configs" / "amdm_book.yaml")
+BOOK = str(ROOT / "configs" / "amdm.yaml")
 
 
 @dataclass

@@ -8,6 +8,6 @@ polish it, in an embedded pose space.
   polisher;
 * :mod:`~minimdm.aamdm.motion`: the pose embedding (future-trajectory features + autoencoder)
   and the motion model; :mod:`~minimdm.aamdm.motion_train` trains it
-  (``python -m minimdm.aamdm train configs/aamdm_book.yaml``);
+  (``python -m minimdm.aamdm train configs/aamdm.yaml``);
 * :mod:`~minimdm.aamdm.eval`: rollouts and eq. 13 guidance on motion.
 """

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -58,14 +59,18 @@ INITIAL_CLIPS = (
 
 
 def initial_states(
-    data: dict, names: tuple[str, ...] = INITIAL_CLIPS, row: int = 10
+    data: dict, names: tuple[str, ...] | None = None, row: int = 10
 ) -> dict[str, Any]:
     """Initial frames from :func:`~minimdm.aamdm.load_motion_data`'s ``data``.
 
-    Returns ``y`` (C, D) and ``x`` (C, 12) of feature row ``row`` of each named clip, and the
-    ``start`` pose (root ground position and heading at that frame) that decoding starts from.
+    Returns ``y`` (C, D) and ``x`` (C, 12) of feature row ``row`` of each named clip, the
+    ``start`` pose (root ground position and heading at that frame) that decoding starts from,
+    and each clip's ``bone_lengths`` (C, J - 1). ``names`` default to :data:`INITIAL_CLIPS` for
+    the DeepMimic clips and to every clip otherwise (e.g. a corpus's held-out takes).
     """
     clips = data["clips"]
+    if names is None:
+        names = INITIAL_CLIPS if set(INITIAL_CLIPS) <= set(clips.names) else tuple(clips.names)
     idx = [clips.names.index(n) for n in names]
     y = torch.stack([data["y"][i][row] for i in idx])
     x = torch.stack([data["x"][i][row] for i in idx])
@@ -74,7 +79,12 @@ def initial_states(
         torch.stack([s.xy for s in starts]),
         torch.stack([torch.as_tensor(s.heading) for s in starts]),
     )
-    return {"y": y, "x": x, "start": start, "names": list(names)}
+    bones = torch.stack([  # each take's own actor: the reference of Bone.Err
+        torch.as_tensor(metrics.skeleton_bone_lengths(clips[i].skeleton.offsets,
+                                                      clips[i].skeleton.parents))
+        for i in idx
+    ])  # fmt: skip
+    return {"y": y, "x": x, "start": start, "names": list(names), "bone_lengths": bones}
 
 
 def direction_guide(model: AAMDMMotion, delta: Tensor, scale: float) -> Guide:
@@ -208,17 +218,24 @@ def motion_quality(
     skeleton: Any,
     data_poses: Tensor,
     foot_offset: list[float] | float = 0.0,
+    bone_lengths: Tensor | None = None,
 ) -> dict[str, float]:
     """The comparison's quality columns for one rollout (C characters, K >= 2 samples each).
 
     ``APD`` (cm, mean over characters), ``FS`` (cm/frame), ``Bone.Err`` (cm), ``Jnt.Accel``
     (cm/frame²) from :mod:`minimdm.motion.metrics`; ``DIV`` and ``FD`` against ``data_poses``
-    (:func:`local_poses` of the dataset).
+    (:func:`local_poses` of the dataset). Bone.Err is measured against each character's
+    ``bone_lengths`` (C, J - 1) when given (a corpus of several actors), else the skeleton's.
     """
     pos = rollout.positions  # (C, K, F, J, 3)
     ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
     m = metrics.motion_metrics(pos, skeleton.parents, skeleton.foot_indices, ref,
                                foot_offset=foot_offset)  # fmt: skip
+    if bone_lengths is not None:
+        m["Bone.Err"] = float(np.mean([
+            metrics.bone_length_error(pos[c], skeleton.parents, bone_lengths[c])
+            for c in range(pos.shape[0])
+        ]))  # fmt: skip
     poses = local_poses(rollout.features, pos.shape[-2])
     return {
         **{k: m[k] for k in ("APD", "FS", "Bone.Err", "Jnt.Accel")},

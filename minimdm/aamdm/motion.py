@@ -19,7 +19,7 @@ and
 2 polishing steps) over the standardised ``xz``; a frame is sampled in the latent space and
 decoded to a pose. :class:`AAMDMMotion` holds the three networks and every normalisation, and is
 one checkpoint (kind ``"aamdm_motion"``). Training is :func:`train_aamdm_motion`; its command
-line is ``python -m minimdm.aamdm train configs/aamdm_book.yaml``
+line is ``python -m minimdm.aamdm train configs/aamdm.yaml``
 (:mod:`minimdm.aamdm.motion_train`). Rollouts, guidance (eq. 13)
 and the evaluation live in :mod:`minimdm.aamdm.eval`.
 """

@@ -2,9 +2,10 @@
 
 :func:`train_aamdm_motion` trains, in order, the autoencoder of the embedded space (eqs. 1-4), the
 polisher (Algorithm 1 lines 7-18, eqs. 7-9) and the DD-GAN (lines 19-25, eqs. 11-12) on the
-DeepMimic clips, then writes one checkpoint. Reproduce the book's model with
+clips its config names (the Bandai-Namco training takes for the book's model), then writes one
+checkpoint. Reproduce the book's model with
 
-    python -m minimdm.aamdm train configs/aamdm_book.yaml      # -> checkpoints/aamdm_book/
+    python -m minimdm.aamdm train configs/aamdm.yaml      # -> checkpoints/aamdm/
 """
 
 from __future__ import annotations
@@ -49,10 +50,15 @@ class AAMDMTrainConfig:
 
     fps: float = 30.0
     """Frame rate of the clips."""
+    corpus: str = "deepmimic"
+    """The motion: 'deepmimic', a corpus name or a BVH folder, as ``TrainConfig.corpus``
+    (:func:`minimdm.motion.corpora.load_motion`)."""
+    split: str | None = None
+    """'train' or 'test' takes of the corpus's fixed split, or None (all)."""
     clips: list[str] | None = None
-    """Clip names (None: every humanoid clip of the data package)."""
+    """Clip or take names (None: all of them)."""
     loop_frames: int | None = 150
-    """Unroll looping clips to this many frames."""
+    """Unroll looping clips to this many frames (DeepMimic only)."""
     horizons: list[int] = field(default_factory=lambda: [10, 20, 30])
     """Frames ahead of the future-trajectory features x."""
     z_dim: int = 24
@@ -123,18 +129,22 @@ def load_train_config(path: str | Path) -> AAMDMTrainConfig:
 
 def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
     """Clips, per-clip features ``y`` (F_i - 1, D) and ``x`` (F_i - 1, 12), and the normalizer."""
-    from minimdm.motion import data, features
+    from minimdm.motion import features
+    from minimdm.motion.corpora import load_motion
 
-    clips = data.load_clips(fps=config.fps, loop_frames=config.loop_frames, names=config.clips)
+    clips = load_motion(
+        config.corpus, config.split, config.fps, config.clips, config.loop_frames
+    )  # the clips A-MDM's trainer would load for the same fields
     ys = [features.encode(c) for c in clips]
     xs = [clip_trajectory_features(c, tuple(config.horizons)) for c in clips]
+    skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
     return {
         "clips": clips,
         "y": ys,
         "x": xs,
         "normalizer": features.Normalizer.fit(ys),
-        "skeleton": clips.skeleton,
-        "layout": features.FeatureLayout.for_skeleton(clips.skeleton, config.fps),
+        "skeleton": skeleton,
+        "layout": features.FeatureLayout.for_skeleton(skeleton, config.fps),
     }
 
 
@@ -238,7 +248,13 @@ def train_aamdm_motion(
         "feature_layout": d["layout"],
         "skeleton": skeleton,
         "normalizer": norm,
-        "data": {"clips": d["clips"].names, "fps": c.fps, "windows": int(windows.shape[0])},
+        "data": {
+            "corpus": c.corpus,
+            "split": c.split,
+            "clips": d["clips"].names,
+            "fps": c.fps,
+            "windows": int(windows.shape[0]),
+        },  # fmt: skip
     }
 
     def tick(step: int, rec: dict) -> None:

@@ -17,7 +17,6 @@ import torch
 from torch import Tensor
 
 from minimdm.aamdm.eval import (
-    INITIAL_CLIPS,
     direction_guide,
     heading_tracking_error,
     initial_states,
@@ -41,7 +40,13 @@ from minimdm.motion.features import StartPose
 from minimdm.motion.skeleton import wrap_angle
 from minimdm.utils import num_threads
 
-__all__ = ["frames_per_second", "motion_comparison", "dataset_quality", "guidance_study"]
+__all__ = [
+    "frames_per_second",
+    "motion_comparison",
+    "dataset_quality",
+    "locomotion_clips",
+    "guidance_study",
+]
 
 
 def frames_per_second(step: FrameStep, x0: Tensor, n_frames: int = 60, warmup: int = 5) -> float:
@@ -78,7 +83,7 @@ def motion_comparison(
     seed: int = 0,
     fps_frames: int = 60,
     device: str = "cpu",
-    names: tuple[str, ...] = INITIAL_CLIPS,
+    names: tuple[str, ...] | None = None,
     include_unpolished: bool = True,
 ) -> tuple[list[dict], dict[str, Rollout]]:
     """A-MDM at 5 (DDIM) and at all T steps vs AAMDM (3 + 2), in one run (AAMDM Table 1).
@@ -128,7 +133,8 @@ def motion_comparison(
         seconds = time.perf_counter() - t0
         with num_threads(1 if dev.type == "cpu" else None):
             fps = frames_per_second(one, x0, fps_frames)
-        row = {"method": name, "network_calls": calls, **motion_quality(r, sk, data_poses, foot)}
+        quality = motion_quality(r, sk, data_poses, foot, init["bone_lengths"])
+        row = {"method": name, "network_calls": calls, **quality}
         row.update(fps=fps, rollout_s=seconds)
         rows.append({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()})
         rolls[name] = r
@@ -145,9 +151,12 @@ def dataset_quality(data: dict) -> dict[str, float]:
     poses = local_poses(torch.cat(data["y"]), len(sk))
     pos = [torch.as_tensor(c.positions, dtype=torch.float64) for c in data["clips"]]
     foot = metrics.foot_contact_offsets(torch.cat(pos), sk.foot_indices)
-    ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
-    per_clip = [metrics.motion_metrics(p, sk.parents, sk.foot_indices, ref, foot_offset=foot)
-                for p in pos]  # fmt: skip
+    per_clip = [  # each clip against its own actor's bones
+        metrics.motion_metrics(p, sk.parents, sk.foot_indices,
+                               metrics.skeleton_bone_lengths(c.skeleton.offsets, sk.parents),
+                               foot_offset=foot)
+        for p, c in zip(pos, data["clips"], strict=True)
+    ]  # fmt: skip
     n = sum(len(p) for p in pos)
     w = [len(p) / n for p in pos]
 
@@ -158,12 +167,24 @@ def dataset_quality(data: dict) -> dict[str, float]:
             "DIV": pose_diversity(poses)}  # fmt: skip
 
 
+def locomotion_clips(data: dict, contents: tuple[str, ...] = ("walk", "run")) -> tuple[str, ...]:
+    """The first clip of each content: by ``labels["content"]`` for a corpus, by name otherwise."""
+    clips = data["clips"]
+    names = []
+    for content in contents:
+        match = [c.name for c in clips if (c.labels or {}).get("content", c.name) == content]
+        if not match:
+            raise ValueError(f"no clip with content {content!r} among {len(clips)} clips")
+        names.append(match[0])
+    return tuple(names)
+
+
 def guidance_study(
     model: AAMDMMotion,
     data: dict,
     turns_deg: tuple[float, ...] = (90.0, -90.0, 180.0),
     scales: tuple[float, ...] = (0.0, 0.5, 2.0),
-    names: tuple[str, ...] = ("walk", "run"),
+    names: tuple[str, ...] | None = None,
     n_frames: int = 150,
     n_samples: int = 4,
     settle: int = 45,
@@ -172,7 +193,8 @@ def guidance_study(
 ) -> list[dict]:
     """Root-direction control (AAMDM §3.5, eq. 13): heading tracking error per guidance scale.
 
-    From each initial frame of ``names``, the command is the start heading turned by each of
+    From each initial frame of ``names`` (default: :func:`locomotion_clips`, a walk and a run),
+    the command is the start heading turned by each of
     ``turns_deg``; ``TE`` is the mean absolute heading error in degrees after ``settle`` frames
     (AAMDM's TE-UC on the realised root heading), ``TE_x`` the error of the facing directions
     in the generated :math:`\\hat x` (the paper's :math:`|\\bar x - \\hat x|`, in degrees), and
@@ -180,7 +202,7 @@ def guidance_study(
     """
     dev = torch.device(device)
     model = model.to(dev).eval()
-    init = initial_states(data, names)
+    init = initial_states(data, names or locomotion_clips(data))
     sk = data["skeleton"]
     data_poses = local_poses(torch.cat(data["y"]), len(sk))
     rows = []
