@@ -8,27 +8,23 @@ Prints one JSON line per measurement. Not a test.
   deterministic, so its pool holds P copies of one candidate; it is run as is (``mse``) and as
   the Gaussian that MSE training fits, :math:`\\mathcal N(f(x), \\sigma^2)` with the per-dimension
   residual std of the regressor on the training data (``mse+gauss``).
-* ``inpainting``: following a circle and a figure-eight with the root (and a lowered head):
-  trajectory error and motion quality (foot sliding, bone error, acceleration) against random
-  sampling from the same start.
-* ``inbetweening``: transitions to keyframes of other clips: keyframe error and smoothness
-  against linear interpolation in feature space.
+* ``inpainting``: following a circle and a figure-eight with the root (and the head held at 90%
+  of its mean height in the held-out walks, a lowered stance): trajectory error and motion
+  quality (foot sliding, bone error, acceleration) against random sampling from the same start.
+* ``inbetweening``: transitions from the start walk to keyframes of held-out takes of other
+  contents (a run, a bow, a farewell wave, a side-step): keyframe error and smoothness against
+  linear interpolation in feature space and random sampling.
 * ``speed``: ms/frame of each technique for one character on the CPU.
 
-The start state is a frame of a take of the A-MDM checkpoint's own data: for the corpus models
-(the default, trained on the training takes of ``bandai-namco-1``) frame 20 of the held-out
-test take ``dataset-1_walk_normal_001``, a normal walk; for a DeepMimic checkpoint frame 20 of
-``walker/0walk_forward``. Either way it is placed at the origin heading +x. Inpainting and
-inbetweening follow cases built from DeepMimic clips (``jump``, ``dance_b``, ``neck``), so they
-run only with DeepMimic checkpoints:
+The start state is frame 20 of the held-out test take ``dataset-1_walk_normal_001`` (a normal
+walk no model has seen), placed at the origin heading +x; the models are the corpus models of
+chapters 3 to 6 (trained on the training takes of ``bandai-namco-1``). Bone errors are measured
+against the start take's own bone lengths (the corpus has several actors):
 
-    python benchmarks/control.py                         # target reaching and speed, corpus models
+    python benchmarks/control.py                         # target reaching and speed
+    python benchmarks/control.py --only inpaint inbetween
     python benchmarks/control.py --quick                 # fewer runs
     python benchmarks/control.py --amdm /tmp/amdm --mse /tmp/mse --mvae /tmp/mvae
-    python benchmarks/control.py --only speed
-    python benchmarks/control.py --only inpaint inbetween --amdm pretrained:amdm_book
-        # inpainting and inbetweening still follow DeepMimic cases; chapter 6 measures them on
-        # the corpus model itself until these cases move to the corpus
 """
 
 from __future__ import annotations
@@ -47,12 +43,15 @@ from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import load_checkpoint
 from minimdm.motion import metrics
 
-START = {
-    "deepmimic": ("walker/0walk_forward", 20),
-    "bandai-namco-1": ("dataset-1_walk_normal_001", 20),
-}
-"""The fixed start state per corpus (take, frame): a walking pose, placed at the origin heading
-+x. For the corpus it is a held-out test take, which no model has seen."""
+START = {"bandai-namco-1": ("dataset-1_walk_normal_001", 20)}
+"""The fixed start state per corpus (take, frame): a walking pose of a held-out test take, which
+no model has seen, placed at the origin heading +x."""
+
+HEAD = "Head"
+"""The joint whose height the lowered-stance inpainting holds."""
+
+KEYFRAMES = (("run", 60, 60), ("bow", 60, 45), ("bye", 60, 45), ("walk-left", 60, 30))
+"""Inbetweening cases: (content of a held-out take, its keyframe frame, N frames to reach it)."""
 
 
 def load(spec: str):
@@ -65,7 +64,8 @@ def load(spec: str):
 
 
 def quality(pos: torch.Tensor, skeleton, offsets) -> dict:
-    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2) of (K, F, J, 3) motions."""
+    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2) of (K, F, J, 3) motions; bone
+    lengths are ``skeleton``'s (the actor of the start take or of the data's own clip)."""
     ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
     fs = metrics.foot_sliding(pos, skeleton.foot_indices, foot_offset=offsets)
     return {
@@ -130,20 +130,20 @@ def target_reaching(models: dict, start, args) -> None:
 # --------------------------------------------------------------------------- inpainting
 
 
-def inpainting(label, cm, start, skeleton, offsets, args) -> None:
+def inpainting(label, cm, start, skeleton, offsets, head_height, args) -> None:
     K, F = args.samples, args.inpaint_frames
-    neck = cm.layout.joint_names.index("neck")
+    head_j = cm.layout.joint_names.index(HEAD)
     paths = {
         "circle_r2": C.circle_path(2.0, 1.0, F, cm.fps),
         "figure_eight_r1.5": C.figure_eight_path(1.5, 1.0, F, cm.fps),
     }
     for pname, path in paths.items():
         root = C.root_path_targets(cm.layout, path)
-        head = C.joint_height_targets(cm.layout, "neck", torch.full((F,), 1.2))
+        head = C.joint_height_targets(cm.layout, HEAD, torch.full((F,), head_height))
         runs = {
             "inpaint_root": (root, -1),
             "inpaint_root_soft": (root, cm.schedule.T // 4),
-            "inpaint_root_head1.2": (root | head, -1),
+            "inpaint_root_head": (root | head, -1),
         }
         g = torch.Generator().manual_seed(args.seed)
         free = rollout(
@@ -169,7 +169,8 @@ def inpainting(label, cm, start, skeleton, offsets, args) -> None:
                 "bench": "inpainting", "model": label, "path": pname, "method": rname, "samples": K,
                 "frames": F, "root_err_cm_mean": round(float(err.mean() * 100), 2),
                 "root_err_cm_max": round(float(err.max() * 100), 2),
-                "neck_height_m": round(float(pos[..., neck, 2].mean()), 3),
+                "head_height_m": round(float(pos[..., head_j, 2].mean()), 3),
+                "head_target_m": round(head_height, 3) if rname == "inpaint_root_head" else None,
                 **quality(pos, skeleton, offsets),
             }  # fmt: skip
             emit(rec)
@@ -178,15 +179,13 @@ def inpainting(label, cm, start, skeleton, offsets, args) -> None:
 # --------------------------------------------------------------------------- inbetweening
 
 
-def inbetweening(label, cm, clips, skeleton, offsets, args) -> None:
+def inbetweening(label, cm, start, test, skeleton, offsets, args) -> None:
     K = args.samples
     pos_slice = cm.layout.joint_pos
     J = cm.layout.n_joints
-    cases = [("walk", 10, "jump", 5, 30), ("walk", 10, "jump", 5, 60),
-             ("run", 10, "dance_b", 10, 45), ("walk", 10, "walker/turn_left0", 40, 30)]  # fmt: skip
-    for a, fa, b, fb, N in cases:
-        start = C.clip_frame(clips[a], fa, cm.layout)
-        key = C.clip_frame(clips[b], fb, cm.layout)
+    for content, fb, N in KEYFRAMES:
+        take = next(c for c in test if c.labels["content"] == content)  # first held-out take
+        key = C.clip_frame(take, fb, cm.layout)
         g = torch.Generator().manual_seed(args.seed)
         m = C.inbetween(cm, start.expand(K, -1), key, N, g)
         lerp = C.lerp_inbetween(cm, start, key, N)
@@ -201,8 +200,8 @@ def inbetweening(label, cm, clips, skeleton, offsets, args) -> None:
             err = (feats[:, -1, pos_slice] - key[pos_slice]).unflatten(-1, (J, 3)).norm(dim=-1)
             acc = pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2]  # (K, N-2, J, 3)
             emit({
-                "bench": "inbetweening", "model": label, "from": f"{a}@{fa}", "to": f"{b}@{fb}",
-                "N": N,
+                "bench": "inbetweening", "model": label, "from": args.start,
+                "to": f"{take.name}@{fb}", "content": content, "N": N,
                 "method": method, "samples": int(feats.shape[0]),
                 "keyframe_err_cm": round(float(err.mean() * 100), 2),
                 "keyframe_err_cm_max": round(float(err.mean(-1).max() * 100), 2),
@@ -255,8 +254,7 @@ def main() -> None:
     p.add_argument("--extra", nargs="*", default=[], metavar="NAME=PATH",
                    help="more models (diffusion ones also inpaint and inbetween)")  # fmt: skip
     p.add_argument("--only", nargs="+", default=["target", "speed"],
-                   choices=["target", "inpaint", "inbetween", "speed"],
-                   help="inpaint and inbetween need DeepMimic checkpoints")  # fmt: skip
+                   choices=["target", "inpaint", "inbetween", "speed"])  # fmt: skip
     p.add_argument(
         "--start",
         default=None,
@@ -283,12 +281,9 @@ def main() -> None:
     amdm_ckpt = load(args.amdm)
     corpus = amdm_ckpt.config.get("corpus") or "deepmimic"
     editing = {"inpaint", "inbetween"} & set(args.only)
-    if editing and corpus != "deepmimic":
-        p.error(
-            f"--only {' '.join(sorted(editing))} follows DeepMimic cases (jump, dance_b, neck), "
-            f"but --amdm {args.amdm} was trained on {corpus!r}: pass DeepMimic checkpoints, e.g. "
-            "--amdm pretrained:amdm_book"
-        )
+    if editing and amdm_ckpt.config.get("split") != "train":
+        p.error(f"--only {' '.join(sorted(editing))} starts from and heads for held-out takes: "
+                f"--amdm must be trained on a corpus's 'train' split, got {corpus!r}")  # fmt: skip
     if args.start is None:
         if corpus not in START:
             p.error(f"no default start state for corpus {corpus!r}: pass --start TAKE@FRAME")
@@ -297,7 +292,6 @@ def main() -> None:
     amdm = C.as_control_model(amdm_ckpt)
     start = evaluation.initial_state(amdm_ckpt, take, int(frame)).features  # (D,)
     emit({"bench": "config", **vars(args), "corpus": corpus, **hardware()})
-    clips = evaluation.checkpoint_clips(amdm_ckpt)  # the training clips, as training saw them
     extras = {}
     for item in args.extra:
         name, spec = item.split("=", 1)
@@ -312,19 +306,21 @@ def main() -> None:
         models.update(extras)
         target_reaching(models, start, args)
     if editing:
-        skeleton = clips.skeleton
-        walk_pos = torch.cat([c.fk()[0] for c in clips if "walk" in c.name])
+        test = evaluation.checkpoint_clips(amdm_ckpt, split="test")  # the held-out takes
+        skeleton = test[take].skeleton  # the start take's actor: the reference bone lengths
+        walks = [c for c in test if c.labels["content"] == "walk"]
+        walk_pos = torch.cat([torch.as_tensor(c.positions) for c in walks])
         offsets = metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices)
-        data_pos = torch.stack([c.fk()[0][:150].float() for c in clips
-                                if "walk" in c.name and c.n_frames >= 150])  # fmt: skip
-        emit({"bench": "data_reference", "clips": "walking",
-              **quality(data_pos, skeleton, offsets)})  # fmt: skip
+        head_height = 0.9 * float(walk_pos[:, skeleton.names.index(HEAD), 2].mean())
+        for c in walks:  # the data's own row: each held-out walk against its own actor
+            pos = torch.as_tensor(c.positions)[None].float()  # (1, F, J, 3)
+            emit({"bench": "data_reference", "clip": c.name, **quality(pos, c.skeleton, offsets)})
         diffusion = {"amdm": amdm, **{k: v for k, v in extras.items() if v.is_diffusion}}
         for label, cm in diffusion.items():
             if "inpaint" in args.only:
-                inpainting(label, cm, start, skeleton, offsets, args)
+                inpainting(label, cm, start, skeleton, offsets, head_height, args)
             if "inbetween" in args.only:
-                inbetweening(label, cm, clips, skeleton, offsets, args)
+                inbetweening(label, cm, start, test, skeleton, offsets, args)
     if "speed" in args.only:
         speed(amdm, start, args)
 
