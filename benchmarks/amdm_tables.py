@@ -9,7 +9,8 @@ Prints one JSON line per row (config, hardware, metrics as mean and std over see
 * ``memorisation``: the distance of generated poses to the nearest training pose, next to the
   same distance for the held-out takes' poses (median, 90th percentile, share under 1 cm);
 * ``steps``: one model per T in {1, 2, 5, 10, 20, 40, 100} (``checkpoints/amdm_steps/T*``,
-  still trained on the DeepMimic clips): APD, ADE, FS and ms/frame at batch 1, in one run;
+  smaller models trained on the same takes with the base model's recipe), from the same
+  held-out states: the Table 1 metrics and ms/frame at batch 1, in one run;
 * ``drift``: bone error and root height over a 1,000-frame rollout of the base model.
 
     python benchmarks/amdm_tables.py                 # the paper's protocol, 3 seeds

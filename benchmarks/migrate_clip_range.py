@@ -126,11 +126,9 @@ def migrate_squ9(path: Path) -> dict:
 
 
 def main() -> None:
-    # (it also migrated amdm_book, aamdm_book, amdm_eps_book and amdm_eps_noss_book, since
-    # retired; the book's corpus models were trained with their clamps)
-    amdm = sorted((CKPT / "amdm_steps").glob("T*/model.safetensors"))
-    for path in amdm:
-        print(json.dumps(migrate_amdm(Path(str(path)).with_suffix(""))), flush=True)
+    # It also migrated amdm_book, aamdm_book, amdm_eps_book, amdm_eps_noss_book and the
+    # DeepMimic amdm_steps, since retired or retrained: the book's corpus models were trained
+    # with the clamps their configs name, so only the Squ-9 AAMDM still carries this migration.
     print(json.dumps(migrate_squ9(CKPT / "aamdm_squ9" / "aamdm")), flush=True)
 
 

@@ -23,8 +23,8 @@ from minimdm.checkpoint import Checkpoint
 
 __all__ = ["STEPS_COLUMNS", "steps_table", "read_results"]
 
-STEPS_COLUMNS = ("APD", "ADE", "FS", "Bone.Err", "ms/frame")
-"""The columns of the steps table (A-MDM Tables 3 and 4, plus the bone error)."""
+STEPS_COLUMNS = ("APD", "ADE", "FS", "Bone.Err", "Jnt.Accel", "ms/frame")
+"""The columns of the steps table (A-MDM Tables 3 and 4, plus bone error and jitter)."""
 
 
 def steps_table(
