@@ -112,11 +112,6 @@ def _sampling_clamp(ck):
     return getattr(getattr(model, "config", None), "clip_x0", None)
 
 
-def _amdm_with_range_clamp(path: Path) -> bool:
-    meta = json.loads(path.with_suffix(".json").read_text())
-    return isinstance((meta.get("diffusion") or {}).get("clip_x0"), list)
-
-
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_shipped_checkpoint_loads_and_its_clamp_is_a_valid_range(path):
     ck = load_checkpoint(path)
@@ -131,24 +126,21 @@ def test_every_shipped_checkpoint_loads_and_its_clamp_is_a_valid_range(path):
             assert load_config(ROOT / config_file).clip_x0 == clamp
 
 
-_FRAMES: dict[str, torch.Tensor] = {}
+def test_the_base_models_box_bounds_every_frame_it_samples():
+    """The shipped A-MDM clamps x0_hat to ±3σ (chapter 3): the training range would cut none of
+    its training frames, the box cuts some, and no sampled frame leaves the box."""
+    import minimdm
+    from minimdm.amdm import evaluation
+    from minimdm.diffusion import data_range
 
-
-@pytest.mark.parametrize(
-    "path",
-    [p for p in SHIPPED if _amdm_with_range_clamp(p)],
-    ids=lambda p: p.relative_to(ROOT).as_posix(),
-)
-def test_amdm_checkpoints_clamp_covers_their_training_frames(path):
-    pytest.importorskip("pybullet_data")
-    ck = load_checkpoint(path)
-    key = json.dumps([ck.metadata.get("data"), ck.config.get("loop_frames"), ck.normalizer])
-    if key not in _FRAMES:  # the same clips and statistics give the same frames
-        _FRAMES[key] = checkpoint_training_frames(ck)
-    fr = _FRAMES[key]
+    ck = minimdm.pretrained("amdm")
+    fr = checkpoint_training_frames(ck)
     assert fr.shape[1] == ck.feature_layout["dim"]
-    assert checkpoint_clamp_share(ck, frames=fr) == 0.0
-    assert checkpoint_clamp_share(ck, 5.0, frames=fr) > 0.05  # the old box cut the jumps
+    assert checkpoint_clamp_share(ck, data_range(fr), frames=fr) == 0.0
+    assert 0.0 < checkpoint_clamp_share(ck, frames=fr) < 1.0
+    state = evaluation.initial_state(ck, "dataset-1_walk_normal_001", 20)
+    r = minimdm.rollout(ck, state.features, 5, 4, generator=torch.Generator().manual_seed(0))
+    assert r.normalized.abs().max() <= 3.0 + 1e-5
 
 
 def test_aamdm_checkpoints_clamp_covers_their_training_data():
