@@ -214,6 +214,54 @@ def test_corpus_data_starts_from_held_out_takes_with_each_actors_bones():
         load_motion_data(AAMDMTrainConfig(split="test"))  # the DeepMimic clips have none
 
 
+def test_a_tiny_corpus_training_records_and_reloads_its_takes(tmp_path):
+    """Train end to end on two training takes with tiny step counts: the checkpoint records the
+    corpus, split and takes, and :func:`checkpoint_training_xz` rebuilds exactly the frames the
+    model was trained on, all inside the clamp that training stored."""
+    from minimdm.aamdm.motion_train import (
+        checkpoint_training_xz,
+        load_motion_data,
+        train_aamdm_motion,
+    )
+    from minimdm.checkpoint import load_checkpoint
+    from minimdm.diffusion.clamp import clamp_share
+
+    takes = ["dataset-1_bow_angry_001", "dataset-1_bow_childish_001"]
+    cfg = AAMDMTrainConfig(
+        corpus="bandai-namco-1", split="train", clips=takes, loop_frames=None,
+        z_dim=4, ae_width=16, ae_depth=2, ae_steps=3, ae_batch=8, latent_dim=2, width=16,
+        depth=2, disc_width=16, window=2, polish_steps=2, polish_batch=4, gan_steps=2,
+        gan_batch=4,
+    )  # fmt: skip
+    _, report = train_aamdm_motion(cfg, tmp_path, progress=False)
+    ck = load_checkpoint(tmp_path)
+    data = ck.metadata["data"]
+    assert (data["corpus"], data["split"], data["clips"]) == ("bandai-namco-1", "train", takes)
+    assert (ck.config["corpus"], ck.config["split"]) == ("bandai-namco-1", "train")
+    d = load_motion_data(cfg)
+    assert report["frames"] == sum(len(y) for y in d["y"]) == 90 - 1 + 98 - 1  # pairs of frames
+    xz = checkpoint_training_xz(ck)
+    assert xz.shape == (report["frames"], ck.model.config.x_dim + cfg.z_dim)
+    # xz was standardised over exactly these frames: mean 0, std 1 per feature
+    assert torch.allclose(xz.mean(0), torch.zeros(xz.shape[1]), atol=1e-4)
+    assert clamp_share(ck.model.transition.config.clip_x0, xz) == 0.0
+
+
+def test_a_config_without_corpus_keys_is_deepmimic_and_a_bad_corpus_lists_the_known_ones():
+    pytest.importorskip("pybullet_data")
+    from minimdm.aamdm.motion_train import load_motion_data
+    from minimdm.motion.corpora import CORPORA
+
+    old = {k: v for k, v in asdict(AAMDMTrainConfig()).items() if k not in ("corpus", "split")}
+    cfg = AAMDMTrainConfig(**{**old, "clips": ["walk"]})  # an older checkpoint's config
+    assert (cfg.corpus, cfg.split) == ("deepmimic", None)
+    d = load_motion_data(cfg)
+    assert d["clips"].names == ["walk"] and len(d["clips"][0]) == 150  # loop_frames
+    with pytest.raises(ValueError, match="known corpus") as err:
+        load_motion_data(AAMDMTrainConfig(corpus="bandai-namco-9"))
+    assert all(name in str(err.value) for name in CORPORA)
+
+
 @pytest.mark.skipif(not (BOOK / "model.safetensors").exists(), reason="no shipped checkpoint")
 def test_shipped_autoencoder_round_trip_is_within_the_measured_bound():
     """decode(encode(y, x)) on every training frame: the joint positions of the pose come back
