@@ -87,6 +87,37 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_rl(args: argparse.Namespace) -> int:
+    import shlex
+
+    from minimdm.config import with_changes
+    from minimdm.rl.train import load_config, train_policy
+
+    config = with_changes(load_config(args.config), _overrides(args.set or []), where="--set")
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    command = ["minimdm", "rl", Path(args.config).as_posix()]
+    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
+    if args.out:
+        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
+    if args.threads != 2:
+        command.append(f"--threads {args.threads}")
+    result = train_policy(
+        config,
+        out,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": " ".join(command)},
+    )
+    summary = {
+        "checkpoint": str(result.checkpoint.paths.weights),
+        "env_steps": result.env_steps,
+        "seconds": round(result.seconds, 1),
+        "final_reward_mean": result.checkpoint.metadata.get("final_reward_mean"),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
 def _parse_start(text: str) -> tuple[str, int]:
     name, _, frame = text.rpartition(":")
     if not name:
@@ -212,6 +243,16 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--restart", action="store_true", help="ignore an existing training state")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=_cmd_train)
+
+    r = sub.add_parser("rl", help="train a steering policy with PPO (chapter 7)")
+    r.add_argument("config", help="a YAML file of configs/, e.g. configs/rl_target.yaml")
+    r.add_argument("--out", help="policy folder (default: checkpoints/<config stem>)")
+    r.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
+    )
+    r.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.set_defaults(fn=_cmd_rl)
 
     s = sub.add_parser("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")

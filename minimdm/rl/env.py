@@ -1,0 +1,312 @@
+"""The steering environments: N characters as one batch, stepped by one call of the frozen model.
+
+:class:`SteeringVecEnv` is a gymnasium :class:`~gymnasium.vector.VectorEnv`. Its state is one
+batched tensor of the characters' current frames (N, D), in the base model's normalized space,
+and their root state (:class:`~minimdm.rl.tasks.Characters`). A step takes the policy's actions
+(N, A) and asks the :class:`Steerer` for every character's next frame at once:
+
+* :class:`ResidualSteerer` (A-MDM §5.2): the actions are residuals on K denoising steps, added
+  by :func:`~minimdm.rl.residual.residual_hook` inside the one reverse chain (eq. 7);
+* :class:`LatentSteerer` (MVAE, Ling et al. 2020): the action is the decoder's latent z.
+
+The root is integrated from the new frame's velocity and yaw rate (as
+:func:`minimdm.motion.features.decode_root` does), the task scores it, and finished episodes
+restart at once from a random corpus frame (gymnasium's same-step autoreset: the last
+observation is in ``infos["final_obs"]``). The observation is the current frame followed by the
+task observation. :class:`SteeringEnv` is the single-character view that gymnasium's
+environment checker and the chapter's live widget use.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from torch import Tensor
+
+from minimdm.amdm.models import MVAE, MLPDenoiser
+from minimdm.control.core import ControlModel, sample_frame
+from minimdm.diffusion import ddim_timesteps
+
+from .residual import ResidualSchedule, feature_indices, residual_hook
+from .tasks import Characters, Task
+
+__all__ = [
+    "Steerer",
+    "ResidualSteerer",
+    "LatentSteerer",
+    "make_steerer",
+    "SteeringVecEnv",
+    "SteeringEnv",
+    "check_actions",
+]
+
+
+def check_actions(actions: Any, n: int, dim: int) -> Tensor:
+    """``actions`` as a float32 (n, dim) tensor; ``ValueError`` for another shape or NaN/Inf."""
+    a = torch.as_tensor(np.asarray(actions), dtype=torch.float32)
+    if a.shape != (n, dim):
+        raise ValueError(f"actions must have shape ({n}, {dim}), got {tuple(a.shape)}")
+    if not torch.isfinite(a).all():
+        bad = (~torch.isfinite(a)).any(1).nonzero()[0].item()
+        raise ValueError(f"actions must be finite, but environment {bad} holds NaN/Inf")
+    return a
+
+
+class Steerer:
+    """How actions steer the base model: ``steerer(cond, actions, generator) -> next frame``."""
+
+    action_dim: int
+    kind: str
+
+    def __call__(self, cond: Tensor, actions: Tensor, generator: torch.Generator) -> Tensor:
+        raise NotImplementedError
+
+    def to_dict(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+
+class ResidualSteerer(Steerer):
+    """A-MDM residual steering (eq. 7): actions (N, K * F) in [-1, 1] are residuals on the
+    ``features`` of the K steps of ``schedule``, weighted by :math:`w^t` (times its scale)."""
+
+    kind = "residual"
+
+    def __init__(self, cm: ControlModel, schedule: ResidualSchedule, features: str = "all"):
+        if not cm.is_diffusion:
+            raise ValueError(
+                f"residual steering needs an A-MDM denoiser, got {type(cm.net).__name__}"
+            )
+        if schedule.T != cm.schedule.T:
+            raise ValueError(
+                f"the residual schedule has T={schedule.T}, the model T={cm.schedule.T}"
+            )
+        self.cm, self.schedule, self.features = cm, schedule, features
+        self.idx = feature_indices(cm.layout, features) if features != "all" else None
+        self.per_step = len(self.idx) if self.idx is not None else cm.dim
+        self.action_dim = schedule.n_residuals * self.per_step
+        T = cm.schedule.T
+        self.chain = (
+            list(range(T - 1, -1, -1)) if cm.steps in (None, T) else ddim_timesteps(T, cm.steps)
+        )
+
+    def __call__(self, cond, actions, generator):
+        hook = residual_hook(self.schedule, actions, self.chain, self.idx)
+        return sample_frame(self.cm, cond, generator, hook)
+
+    def to_dict(self):
+        return {
+            "kind": self.kind,
+            "schedule": self.schedule.to_dict(),
+            "features": self.features,
+            "steps": self.cm.steps,
+        }
+
+
+class LatentSteerer(Steerer):
+    """MVAE latent steering (Ling et al. 2020): the action (N, Z) in [-1, 1], times ``scale``,
+    is the latent z the decoder turns into the next frame."""
+
+    kind = "latent"
+
+    def __init__(self, cm: ControlModel, scale: float = 2.0):
+        if not isinstance(cm.net, MVAE):
+            raise ValueError(f"latent steering needs an MVAE, got {type(cm.net).__name__}")
+        self.cm, self.scale = cm, float(scale)
+        self.action_dim = cm.net.config.latent_dim
+
+    @torch.no_grad()
+    def __call__(self, cond, actions, generator):
+        return self.cm.net.decode(self.scale * actions.to(cond), cond)
+
+    def to_dict(self):
+        return {"kind": self.kind, "scale": self.scale}
+
+
+def make_steerer(cm: ControlModel, spec: dict[str, Any]) -> Steerer:
+    """A steerer from :meth:`Steerer.to_dict`'s output (as stored in a policy checkpoint)."""
+    kind = spec.get("kind")
+    if kind == "residual":
+        return ResidualSteerer(cm, ResidualSchedule.from_dict(spec["schedule"]), spec["features"])
+    if kind == "latent":
+        return LatentSteerer(cm, spec.get("scale", 2.0))
+    raise ValueError(f"steering kind must be 'residual' or 'latent', got {kind!r}")
+
+
+def default_steerer(cm: ControlModel, **options: Any) -> Steerer:
+    """The steerer for the model's kind: residuals for A-MDM, the latent for an MVAE."""
+    if isinstance(cm.net, MLPDenoiser):
+        T = cm.schedule.T
+        sched = ResidualSchedule.top(
+            T,
+            options.get("n_levels", T // 2),
+            options.get("anneal", "linear"),
+            options.get("scale", 1.0),
+        )
+        return ResidualSteerer(cm, sched, options.get("features", "all"))
+    return LatentSteerer(cm, options.get("scale", 2.0))
+
+
+class SteeringVecEnv(VectorEnv):
+    """N characters driven by one batched model call per step (see the module docstring).
+
+    Args:
+        cm: the frozen base model.
+        steerer: how actions steer it.
+        task: the task (fresh: the env calls its ``setup``).
+        starts: (P, D) the corpus frames episodes start from, in feature units.
+        num_envs: N.
+        seed: seeds the generator of starts, goals and the model's noise.
+
+    Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's.
+    Action: (N, A) float32 in [-1, 1].
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self,
+        cm: ControlModel,
+        steerer: Steerer,
+        task: Task,
+        starts: Tensor,
+        num_envs: int = 64,
+        seed: int = 0,
+    ) -> None:
+        starts = torch.as_tensor(starts, dtype=torch.float32)
+        D = cm.dim
+        if starts.dim() != 2 or starts.shape[1] != D or len(starts) == 0:
+            raise ValueError(
+                f"starts must have shape (P, {D}) with P >= 1, got {tuple(starts.shape)}"
+            )
+        self.cm, self.steerer, self.task = cm, steerer, task
+        self.starts = cm.normalize(starts.to(cm.device))
+        self.num_envs = int(num_envs)
+        self.generator = torch.Generator(device="cpu").manual_seed(seed)
+        self.task.setup(self.num_envs, self.generator)
+        obs_dim = D + task.obs_dim
+        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (steerer.action_dim,), np.float32)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.x = torch.zeros(self.num_envs, D, device=cm.device)
+        self.ch = Characters.zeros(self.num_envs, cm.fps)
+        self.returns = torch.zeros(self.num_envs)
+        self._rot_sl = (
+            (cm.layout.root_vel, cm.layout.yaw_rate) if cm.layout else (slice(0, 2), slice(2, 3))
+        )
+
+    # -- state --------------------------------------------------------------------------
+
+    def _reset_rows(self, idx: Tensor) -> None:
+        pick = torch.randint(len(self.starts), (len(idx),), generator=self.generator)
+        self.x[idx] = self.starts[pick]
+        self.ch.xy[idx] = 0
+        self.ch.heading[idx] = 0
+        self.ch.velocity[idx] = self._root_motion(self.x[idx], self.ch.heading[idx])[0]
+        self.ch.frame[idx] = 0
+        self.returns[idx] = 0
+        self.task.reset(idx, self.ch)
+
+    def _root_motion(self, x: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
+        """World velocity (M, 2) m/s and yaw rate (M,) of normalized frames x in heading frame
+        ``heading`` + yaw rate (the frame's own heading)."""
+        feats = self.cm.denormalize(x).float().cpu()
+        vel, yaw = feats[:, self._rot_sl[0]], feats[:, self._rot_sl[1]][:, 0]
+        h = heading + yaw
+        c, s = torch.cos(h), torch.sin(h)
+        world = torch.stack([c * vel[:, 0] - s * vel[:, 1], s * vel[:, 0] + c * vel[:, 1]], -1)
+        return world * self.cm.fps, yaw
+
+    def _obs(self) -> np.ndarray:
+        obs = torch.cat([self.x.float().cpu(), self.task.observe(self.ch)], dim=1)
+        return obs.numpy().astype(np.float32)
+
+    # -- gymnasium API --------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Restart every environment from random corpus frames (re-seeded if ``seed``)."""
+        if seed is not None:
+            self.generator.manual_seed(int(seed))
+        self._reset_rows(torch.arange(self.num_envs))
+        return self._obs(), {}
+
+    def advance(self, actions: Tensor) -> tuple[Tensor, Tensor]:
+        """Step every character one frame with ``actions`` (N, A): returns the new frames
+        (N, D) normalized and the previous root positions (N, 2). No task, no reset."""
+        x = self.steerer(self.x, actions.to(self.cm.device), self.generator)
+        if not torch.isfinite(x).all():
+            bad = (~torch.isfinite(x)).any(1).nonzero()[0].item()
+            raise FloatingPointError(f"the model produced a non-finite frame for environment {bad}")
+        prev = self.ch.xy.clone()
+        vel, yaw = self._root_motion(x, self.ch.heading)
+        self.ch.heading = torch.remainder(self.ch.heading + yaw + torch.pi, 2 * torch.pi) - torch.pi
+        self.ch.velocity = vel
+        self.ch.xy = self.ch.xy + vel / self.cm.fps
+        self.ch.frame = self.ch.frame + 1
+        self.x = x
+        return x, prev
+
+    def step(self, actions):
+        a = check_actions(actions, self.num_envs, self.single_action_space.shape[0])
+        a = a.clamp(-1.0, 1.0)
+        _, prev = self.advance(a)
+        reward, terminated, info = self.task.step(self.ch, prev)
+        truncated = (self.ch.frame >= self.task.max_frames) & ~terminated
+        self.returns += reward
+        obs = self._obs()
+        infos: dict[str, Any] = {k: v.numpy() for k, v in info.items()}
+        done = terminated | truncated
+        if done.any():
+            idx = done.nonzero()[:, 0]
+            infos["final_obs"] = obs.copy()
+            infos["_final_obs"] = done.numpy()
+            infos["episode_return"] = self.returns.numpy().copy()
+            infos["episode_length"] = self.ch.frame.numpy().copy()
+            self._reset_rows(idx)
+            obs = self._obs()
+        return (
+            obs,
+            reward.numpy().astype(np.float64),
+            terminated.numpy(),
+            truncated.numpy(),
+            infos,
+        )
+
+
+class SteeringEnv(gym.Env):
+    """One character: a :class:`SteeringVecEnv` with ``num_envs=1`` as a plain ``gym.Env``.
+
+    Episodes end (terminated or truncated) instead of restarting by themselves. Used by
+    gymnasium's ``check_env`` and by interactive demos.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, cm, steerer, task, starts, seed: int = 0) -> None:
+        self.vec = SteeringVecEnv(cm, steerer, task, starts, 1, seed)
+        self.observation_space = self.vec.single_observation_space
+        self.action_space = self.vec.single_action_space
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs, info = self.vec.reset(seed=seed, options=options)
+        return obs[0], info
+
+    def step(self, action):
+        a = check_actions(np.asarray(action)[None], 1, self.action_space.shape[0]).clamp(-1, 1)
+        v = self.vec
+        _, prev = v.advance(a)
+        reward, terminated, info = v.task.step(v.ch, prev)
+        truncated = bool(v.ch.frame[0] >= v.task.max_frames) and not bool(terminated[0])
+        return (
+            v._obs()[0],
+            float(reward[0]),
+            bool(terminated[0]),
+            truncated,
+            {k: t[0].item() for k, t in info.items()},
+        )

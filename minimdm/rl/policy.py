@@ -1,0 +1,170 @@
+"""Steering policies as checkpoints: the actor network, its metadata, and loading them back.
+
+A trained policy is stored like every minimdm checkpoint (safetensors + JSON, never pickled):
+the actor of stable-baselines3's PPO copied into :class:`PolicyNet`, plus what is needed to use
+it again -- the task and its options, the steering (residual schedule or latent scale), and the
+identity of the frozen base model it was trained on (name, kind and a fingerprint of its
+weights). :func:`load_steering` rebuilds everything and refuses a policy whose base model or
+task is not the one asked for, naming both.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from minimdm.checkpoint import (
+    Checkpoint,
+    CheckpointMismatchError,
+    load_checkpoint,
+    register_model_kind,
+)
+from minimdm.control.core import ControlModel, as_control_model
+
+from .env import Steerer, make_steerer
+from .tasks import Task, make_task
+
+__all__ = [
+    "PolicyNet",
+    "Steering",
+    "fingerprint",
+    "load_steering",
+    "resolve_checkpoint",
+]
+
+
+class PolicyNet(nn.Module):
+    """The policy's mean action: an MLP with tanh units, as SB3's ``MlpPolicy`` actor.
+
+    ``log_std`` is the Gaussian's learnt log standard deviation per action dimension (kept for
+    reference: the book acts with the mean, :meth:`act` can also sample).
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: tuple[int, ...] = (256, 256)) -> None:
+        super().__init__()
+        self.obs_dim, self.act_dim, self.hidden = int(obs_dim), int(act_dim), tuple(hidden)
+        layers: list[nn.Module] = []
+        d = self.obs_dim
+        for h in self.hidden:
+            layers += [nn.Linear(d, h), nn.Tanh()]
+            d = h
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Linear(d, self.act_dim)
+        self.log_std = nn.Parameter(torch.zeros(self.act_dim), requires_grad=False)
+
+    def forward(self, obs: Tensor) -> Tensor:
+        """(B, obs_dim) -> (B, act_dim) mean action (before clipping to [-1, 1])."""
+        if obs.dim() != 2 or obs.shape[1] != self.obs_dim:
+            raise ValueError(f"obs must have shape (B, {self.obs_dim}), got {tuple(obs.shape)}")
+        return self.head(self.body(obs))
+
+    @torch.no_grad()
+    def act(
+        self, obs: Tensor, deterministic: bool = True, generator: torch.Generator | None = None
+    ) -> Tensor:
+        """Actions (B, act_dim) in [-1, 1]: the mean, or a Gaussian sample around it."""
+        mean = self(obs)
+        if not deterministic:
+            noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+            mean = mean + self.log_std.exp() * noise
+        return mean.clamp(-1.0, 1.0)
+
+    def spec(self) -> dict[str, Any]:
+        return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "hidden": list(self.hidden)}
+
+
+register_model_kind(
+    "policy",
+    PolicyNet,
+    lambda c: PolicyNet(c["obs_dim"], c["act_dim"], tuple(c["hidden"])),
+    lambda m: m.spec(),
+)
+
+
+def fingerprint(model: nn.Module) -> str:
+    """A short hash of a network's weights (names, shapes and bytes), independent of its file."""
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def resolve_checkpoint(name: str | os.PathLike | Checkpoint) -> Checkpoint:
+    """A loaded checkpoint from a shipped name (``"amdm"``), a path, or itself."""
+    if isinstance(name, Checkpoint):
+        return name
+    from minimdm import CHECKPOINT_DIR, pretrained
+
+    p = Path(name)
+    if (CHECKPOINT_DIR / str(name) / "model.safetensors").exists() and not p.exists():
+        return pretrained(str(name))
+    return load_checkpoint(p)
+
+
+def base_identity(ckpt: Checkpoint, name: str) -> dict[str, Any]:
+    """What a policy records about its base model."""
+    return {"name": str(name), "kind": ckpt.kind, "fingerprint": fingerprint(ckpt.model)}
+
+
+@dataclass
+class Steering:
+    """A trained policy with the base model, steerer and task it was trained with."""
+
+    policy: PolicyNet
+    cm: ControlModel
+    steerer: Steerer
+    task: Task
+    checkpoint: Checkpoint
+    """The policy's checkpoint (its metadata: config, command, training log summary)."""
+
+
+def load_steering(
+    policy: str | os.PathLike | Checkpoint,
+    base: str | os.PathLike | Checkpoint | None = None,
+    task: str | None = None,
+) -> Steering:
+    """Load a policy checkpoint (a shipped name such as ``"rl_target"`` or a path) with its
+    base model, steerer and task.
+
+    Args:
+        policy: the policy checkpoint.
+        base: the base model to steer (default: the one the policy names). A different one --
+            other weights, or another kind -- raises :class:`CheckpointMismatchError` naming
+            both.
+        task: the task the caller wants (e.g. ``"joystick"``); a policy trained for another
+            task raises, naming both.
+    """
+    pc = resolve_checkpoint(policy)
+    if pc.kind != "policy":
+        raise ValueError(f"{pc.paths.weights} is a {pc.kind!r} checkpoint, not a steering policy")
+    meta = pc.metadata
+    stored = meta["base"]
+    trained_task = meta["task"]["name"]
+    if task is not None and task != trained_task:
+        raise CheckpointMismatchError(
+            f"policy {pc.paths.weights} was trained for the task {trained_task!r}, not {task!r}"
+        )
+    bc = resolve_checkpoint(base if base is not None else stored["name"])
+    have = base_identity(bc, str(base if base is not None else stored["name"]))
+    if (have["kind"], have["fingerprint"]) != (stored["kind"], stored["fingerprint"]):
+        raise CheckpointMismatchError(
+            f"policy {pc.paths.weights} was trained on the base model {stored['name']!r} "
+            f"({stored['kind']}, weights {stored['fingerprint']}), but the base model given is "
+            f"{have['name']!r} ({have['kind']}, weights {have['fingerprint']}, "
+            f"{bc.paths.weights})"
+        )
+    cm = as_control_model(bc, steps=meta["steering"].get("steps"))
+    steerer = make_steerer(cm, meta["steering"])
+    opts = {k: v for k, v in meta["task"].items() if k != "name"}
+    for k, v in list(opts.items()):
+        if isinstance(v, list):
+            opts[k] = tuple(v)
+    return Steering(pc.model, cm, steerer, make_task(trained_task, **opts), pc)

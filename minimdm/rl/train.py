@@ -1,0 +1,390 @@
+"""Training a steering policy with stable-baselines3's PPO (A-MDM §5.1, eq. 6).
+
+PPO itself is SB3's; this module only connects it to the batched environment:
+
+* :class:`SB3VecEnv` adapts :class:`~minimdm.rl.env.SteeringVecEnv` to SB3's ``VecEnv``: SB3
+  sees N environments, the base model still makes one batched call per step;
+* :class:`RLConfig` is the run (``configs/rl_*.yaml``);
+* :func:`train_policy` runs PPO with a tqdm bar, writes the learning curve as JSON lines
+  (``log.jsonl``: environment steps, mean reward per step, mean episode return...), then
+  stores the actor as a minimdm checkpoint (safetensors + JSON; SB3's pickled zip is never
+  written).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from minimdm.config import load_config as _load_config
+from minimdm.control.core import ControlModel, as_control_model
+from minimdm.motion.features import encode
+
+from .env import LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
+from .policy import PolicyNet, base_identity, resolve_checkpoint
+from .residual import ResidualSchedule
+from .tasks import make_task
+
+__all__ = [
+    "RLConfig",
+    "load_config",
+    "SB3VecEnv",
+    "corpus_starts",
+    "build_env",
+    "train_policy",
+    "RLResult",
+]
+
+
+@dataclass
+class RLConfig:
+    """One policy training run. Every field has the value of the book's configs as default."""
+
+    task: str = "target"
+    """``target``, ``joystick`` or ``path`` (:mod:`minimdm.rl.tasks`)."""
+    task_options: dict = field(default_factory=dict)
+    """Options of the task's dataclass, e.g. ``{max_frames: 300}``."""
+    base: str = "amdm"
+    """The frozen base model: a shipped checkpoint name or a path (an A-MDM or an MVAE)."""
+    steps: int | None = None
+    """A-MDM: denoising steps per frame (None: all T, DDPM; fewer: DDIM on its grid of levels,
+    which ``levels`` must then be on)."""
+    levels: list[int] | None = None
+    """A-MDM: the 0-based levels whose step output gets a residual (None: the ``n_levels``
+    noisiest)."""
+    n_levels: int = 10
+    """A-MDM: how many of the noisiest levels get a residual when ``levels`` is None."""
+    anneal: str = "linear"
+    """A-MDM: the shape of :math:`w^t` (``linear``, ``cosine``, ``none``)."""
+    residual_scale: float = 1.0
+    """A-MDM: :math:`w^t` at the noisiest perturbed level, in normalized feature units."""
+    features: str = "all"
+    """A-MDM: residuals on ``all`` features or on the ``root`` velocity and yaw rate."""
+    tied: bool = False
+    """A-MDM: one residual for every perturbed step (True) or one per step (the paper)."""
+    latent_scale: float = 2.0
+    """MVAE: the latent is ``latent_scale`` times the action."""
+    num_envs: int = 64
+    """Characters stepped together (one batched model call)."""
+    total_steps: int = 1_000_000
+    """Environment steps (frames summed over the characters)."""
+    n_steps: int = 32
+    """PPO: steps per environment between updates (a rollout of num_envs * n_steps)."""
+    batch_size: int = 512
+    n_epochs: int = 5
+    lr: float = 3.0e-4
+    gamma: float = 0.97
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    log_std_init: float = -0.7
+    """Initial log std of the Gaussian policy (the official code fixes std 0.5: log 0.5 = -0.69)."""
+    net_arch: list[int] = field(default_factory=lambda: [256, 256])
+    start_split: str = "train"
+    """Episodes start from frames of the base model's ``train`` takes (or ``test``)."""
+    seed: int = 0
+    config_file: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.num_envs < 1 or self.n_steps < 1 or self.total_steps < 1:
+            raise ValueError("num_envs, n_steps and total_steps must be >= 1")
+        if (self.num_envs * self.n_steps) % self.batch_size:
+            raise ValueError(
+                f"batch_size ({self.batch_size}) must divide num_envs * n_steps "
+                f"({self.num_envs * self.n_steps})"
+            )
+
+
+def load_config(path: str | os.PathLike) -> RLConfig:
+    """Read ``configs/rl_*.yaml`` into an :class:`RLConfig` (unknown keys are an error)."""
+    return _load_config(path, RLConfig)
+
+
+def corpus_starts(base: Checkpoint, split: str = "train") -> torch.Tensor:
+    """(P, D) every frame of the base model's corpus takes (``split``), in feature units."""
+    from minimdm.amdm.evaluation import checkpoint_clips
+
+    return torch.cat([encode(c) for c in checkpoint_clips(base, split=split)])
+
+
+def corpus_speed_range(frames: torch.Tensor, fps: float, q: float = 0.999) -> tuple[float, float]:
+    """(0, the ``q`` quantile of the planar root speed) of frames (P, D) in feature units, m/s:
+    the joystick speeds the corpus holds."""
+    speed = frames[:, :2].norm(dim=1) * fps
+    return (0.0, round(float(torch.quantile(speed, q)), 2))
+
+
+def make_config_steerer(cm: ControlModel, config: RLConfig) -> Steerer:
+    if cm.is_diffusion:
+        T = cm.schedule.T
+        if config.levels is not None:
+            sched = ResidualSchedule(
+                T, tuple(config.levels), config.anneal, config.residual_scale, config.tied
+            )
+        else:
+            sched = ResidualSchedule.top(
+                T, config.n_levels, config.anneal, config.residual_scale, config.tied
+            )
+        return ResidualSteerer(cm, sched, config.features)
+    return LatentSteerer(cm, config.latent_scale)
+
+
+def build_env(
+    config: RLConfig,
+    base: Checkpoint | None = None,
+    num_envs: int | None = None,
+    seed: int | None = None,
+) -> SteeringVecEnv:
+    """The vector environment a config describes (its base model loaded if not given)."""
+    base = base if base is not None else resolve_checkpoint(config.base)
+    cm = as_control_model(base, steps=config.steps)
+    opts = {k: tuple(v) if isinstance(v, list) else v for k, v in config.task_options.items()}
+    starts = corpus_starts(base, config.start_split)
+    if config.task == "joystick" and "corpus_speed" not in opts:
+        opts["corpus_speed"] = corpus_speed_range(starts, cm.fps)
+    task = make_task(config.task, **opts)
+    return SteeringVecEnv(
+        cm,
+        make_config_steerer(cm, config),
+        task,
+        starts,
+        num_envs or config.num_envs,
+        config.seed if seed is None else seed,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# stable-baselines3
+
+
+def _sb3():
+    from stable_baselines3.common.vec_env import VecEnv
+
+    return VecEnv
+
+
+class SB3VecEnv(_sb3()):
+    """SB3's ``VecEnv`` over a :class:`SteeringVecEnv`: N environments, one model call a step.
+
+    Finished episodes restart in the same step; SB3 gets the last observation as
+    ``terminal_observation``, ``TimeLimit.truncated`` for episodes cut by the time limit (so
+    that it bootstraps their value) and ``episode`` (return, length) as SB3's Monitor gives it.
+    """
+
+    def __init__(self, env: SteeringVecEnv) -> None:
+        self.env = env
+        super().__init__(env.num_envs, env.single_observation_space, env.single_action_space)
+        self._actions: np.ndarray | None = None
+        self.finished: list[tuple[float, int]] = []
+        """(return, length) of every episode finished since the last :meth:`drain`."""
+        self.reward_sum, self.reward_count = 0.0, 0
+        """The task's rewards since the last :meth:`drain` (SB3's buffer adds bootstrapped
+        values to the rewards of time-limited steps, so it is not the task's reward)."""
+
+    def reset(self):
+        seed = self._seeds[0] if getattr(self, "_seeds", None) else None
+        obs, _ = self.env.reset(seed=seed)
+        if hasattr(self, "_reset_seeds"):
+            self._reset_seeds()
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = actions
+
+    def step_wait(self):
+        obs, reward, terminated, truncated, info = self.env.step(self._actions)
+        self.reward_sum += float(reward.sum())
+        self.reward_count += len(reward)
+        done = terminated | truncated
+        infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        for i in np.flatnonzero(done):
+            r, n = float(info["episode_return"][i]), int(info["episode_length"][i])
+            infos[i] = {
+                "terminal_observation": info["final_obs"][i],
+                "TimeLimit.truncated": bool(truncated[i] and not terminated[i]),
+                "episode": {"r": r, "l": n, "t": 0.0},
+            }
+            self.finished.append((r, n))
+        return obs, reward.astype(np.float32), done, infos
+
+    def drain(self) -> tuple[float, list[tuple[float, int]]]:
+        """The mean task reward per step and the finished episodes since the last call."""
+        mean = self.reward_sum / max(self.reward_count, 1)
+        out, self.finished = self.finished, []
+        self.reward_sum, self.reward_count = 0.0, 0
+        return mean, out
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name, indices=None):
+        return [getattr(self.env, attr_name)] * len(self._indices(indices))
+
+    def set_attr(self, attr_name, value, indices=None):
+        setattr(self.env, attr_name, value)
+
+    def env_method(self, method_name, *args, indices=None, **kwargs):
+        return [getattr(self.env, method_name)(*args, **kwargs)] * len(self._indices(indices))
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False] * len(self._indices(indices))
+
+    def _indices(self, indices):
+        if indices is None:
+            return range(self.num_envs)
+        return [indices] if isinstance(indices, int) else indices
+
+
+def _callback(total: int, log_path: Path, progress: bool, adapter: SB3VecEnv, t0: float):
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Curve(BaseCallback):
+        """tqdm over environment steps; one JSON line per PPO rollout (the learning curve)."""
+
+        def _on_training_start(self) -> None:
+            self.bar = tqdm(
+                total=total, disable=not progress, desc="PPO", unit="step", unit_scale=True
+            )
+            self.file = open(log_path, "w")
+            self.rows: list[dict] = []
+
+        def _on_step(self) -> bool:
+            self.bar.update(adapter.num_envs)
+            return True
+
+        def _on_rollout_end(self) -> None:
+            reward_mean, eps = adapter.drain()
+            logged = self.model.logger.name_to_value
+            row = {
+                "env_steps": int(self.num_timesteps),
+                "seconds": round(time.time() - t0, 1),
+                "reward_mean": reward_mean,
+                "episodes": len(eps),
+                "return_mean": float(np.mean([r for r, _ in eps])) if eps else None,
+                "length_mean": float(np.mean([n for _, n in eps])) if eps else None,
+                "std": float(self.model.policy.log_std.detach().exp().mean()),
+            }
+            for k in ("train/approx_kl", "train/value_loss", "train/explained_variance"):
+                if k in logged:
+                    row[k.split("/")[1]] = float(logged[k])
+            self.rows.append(row)
+            self.file.write(json.dumps(row) + "\n")
+            self.file.flush()
+            self.bar.set_postfix(reward=f"{row['reward_mean']:.3f}")
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+            self.file.close()
+
+    return Curve()
+
+
+@dataclass
+class RLResult:
+    """What :func:`train_policy` returns."""
+
+    checkpoint: Checkpoint
+    """The stored policy (reloaded from disk)."""
+    history: list[dict]
+    """The learning curve, one row per PPO rollout (as in ``log.jsonl``)."""
+    seconds: float
+    env_steps: int
+    model: Any = None
+    """SB3's PPO object, in memory only (never saved)."""
+
+
+def train_policy(
+    config: RLConfig,
+    out: str | os.PathLike,
+    progress: bool = True,
+    num_threads: int = 1,
+    metadata: dict | None = None,
+    base: Checkpoint | None = None,
+) -> RLResult:
+    """Train a steering policy with SB3's PPO and store it in ``out`` (a checkpoint folder).
+
+    The base model stays frozen. ``out/log.jsonl`` receives the learning curve, one line per
+    PPO rollout; ``out/model.safetensors`` + ``model.json`` the actor and its metadata: the
+    config, the task, the steering, the base model's identity, training time and steps.
+    """
+    from stable_baselines3 import PPO
+
+    torch.set_num_threads(num_threads)
+    torch.manual_seed(config.seed)
+    base = base if base is not None else resolve_checkpoint(config.base)
+    env = build_env(config, base)
+    adapter = SB3VecEnv(env)
+    adapter.seed(config.seed)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = PPO(
+        "MlpPolicy",
+        adapter,
+        learning_rate=config.lr,
+        n_steps=config.n_steps,
+        batch_size=config.batch_size,
+        n_epochs=config.n_epochs,
+        gamma=config.gamma,
+        gae_lambda=config.gae_lambda,
+        clip_range=config.clip_range,
+        ent_coef=config.ent_coef,
+        vf_coef=config.vf_coef,
+        max_grad_norm=config.max_grad_norm,
+        policy_kwargs={
+            "net_arch": {"pi": list(config.net_arch), "vf": list(config.net_arch)},
+            "log_std_init": config.log_std_init,
+        },
+        seed=config.seed,
+        device="cpu",
+        verbose=0,
+    )
+    t0 = time.time()
+    cb = _callback(config.total_steps, out / "log.jsonl", progress, adapter, t0)
+    model.learn(total_timesteps=config.total_steps, callback=cb)
+    seconds = time.time() - t0
+    net = export_actor(model)
+    last = cb.rows[-10:]
+    meta = {
+        **(metadata or {}),
+        "config": asdict(config),
+        "config_file": config.config_file,
+        "task": env.task.to_dict(),
+        "steering": env.steerer.to_dict(),
+        "base": base_identity(base, config.base),
+        "feature_layout": base.feature_layout,
+        "skeleton": base.skeleton,
+        "env_steps": int(model.num_timesteps),
+        "train_seconds": round(seconds, 1),
+        "final_reward_mean": float(np.mean([r["reward_mean"] for r in last])) if last else None,
+    }
+    save_checkpoint(out, net, meta)
+    return RLResult(load_checkpoint(out), cb.rows, seconds, int(model.num_timesteps), model)
+
+
+def export_actor(model) -> PolicyNet:
+    """Copy the actor of an SB3 ``PPO("MlpPolicy")`` into a :class:`PolicyNet`."""
+    pol = model.policy
+    linears = [m for m in pol.mlp_extractor.policy_net if isinstance(m, torch.nn.Linear)]
+    net = PolicyNet(
+        linears[0].in_features, pol.action_net.out_features, tuple(l.out_features for l in linears)
+    )
+    body = [m for m in net.body if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for mine, theirs in zip(body, linears, strict=True):
+            mine.weight.copy_(theirs.weight)
+            mine.bias.copy_(theirs.bias)
+        net.head.weight.copy_(pol.action_net.weight)
+        net.head.bias.copy_(pol.action_net.bias)
+        net.log_std.copy_(pol.log_std)
+    return net.eval()

@@ -1,0 +1,354 @@
+"""Chapter 7: the residual hook (eq. 7), the tasks (eq. 8), the environments, PPO and policies."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import minimdm
+from minimdm.checkpoint import CheckpointMismatchError
+from minimdm.control.core import as_control_model
+from minimdm.diffusion import DDIMStep, NoiseSchedule, reverse_chain
+from minimdm.rl import (
+    Characters,
+    JoystickTask,
+    PathTask,
+    ResidualSchedule,
+    SteeringEnv,
+    SteeringVecEnv,
+    TargetTask,
+    joystick_reward,
+    load_steering,
+    residual_hook,
+)
+from minimdm.rl.env import LatentSteerer, ResidualSteerer
+from minimdm.rl.train import RLConfig, build_env, corpus_starts
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def base():
+    return minimdm.pretrained("amdm")
+
+
+@pytest.fixture(scope="module")
+def starts(base):
+    return corpus_starts(base)[::50]  # every 50th training frame: enough variety, fast
+
+
+# -- eq. 7: the residual hook ---------------------------------------------------------------
+
+
+def test_linear_and_cosine_weights_anneal_towards_the_last_steps():
+    lin = ResidualSchedule(20, (19, 15, 11, 7), "linear", 2.0).weights()
+    assert torch.allclose(lin, torch.tensor([2.0, 1.5, 1.0, 0.5]))
+    cos = ResidualSchedule.top(20, 8, "cosine").weights()
+    assert cos[0] == pytest.approx(1.0) and (cos[1:] < cos[:-1]).all() and (cos > 0).all()
+    assert torch.equal(ResidualSchedule.top(20, 3, "none").weights(), torch.ones(3))
+
+
+def test_bad_schedules_are_refused():
+    with pytest.raises(ValueError, match="strictly decreasing"):
+        ResidualSchedule(20, (3, 5))
+    with pytest.raises(ValueError, match=r"\[0, T-1=19\]"):
+        ResidualSchedule(20, (20, 3))
+    with pytest.raises(ValueError, match="anneal"):
+        ResidualSchedule(20, (5,), "exp")
+
+
+class _Zero(torch.nn.Module):
+    def forward(self, x, t, cond):
+        return torch.zeros_like(x)
+
+
+@given(
+    levels=st.lists(st.integers(0, 9), min_size=1, max_size=10, unique=True),
+    n_feat=st.integers(1, 6),
+    seed=st.integers(0, 1000),
+)
+@settings(max_examples=30, deadline=None)
+def test_residuals_land_at_exactly_the_chosen_steps_with_weight_w(levels, n_feat, seed):
+    """Recorders before and after the hook in a real reverse chain: the hook adds w^t a^t on the
+    chosen features after the steps from the chosen levels, and nothing anywhere else."""
+    g = torch.Generator().manual_seed(seed)
+    T, B, D = 10, 3, 6
+    levels = tuple(sorted(levels, reverse=True))
+    sched = ResidualSchedule(T, levels, "linear", 1.5)
+    feats = sorted(torch.randperm(D, generator=g)[:n_feat].tolist())
+    actions = torch.randn(B, len(levels), n_feat, generator=g)
+    chain = list(range(T - 1, -1, -1))
+    seen = {}
+
+    def before(t, x, x0):
+        seen[t] = [x.clone()]
+        return x
+
+    def after(t, x, x0):
+        seen[t].append(x.clone())
+        return x
+
+    rule = DDIMStep(_Zero(), NoiseSchedule("cosine", T), "eps", eta=1.0)
+    hook = residual_hook(sched, actions, chain, feats)
+    x = torch.randn(B, D, generator=g)
+    reverse_chain(rule, x, chain, None, g, [before, hook, after])
+    w = sched.weights()
+    for t in chain:
+        t_next = t - 1
+        delta = seen[t_next][1] - seen[t_next][0]
+        expect = torch.zeros(B, D)
+        if t in levels:
+            k = levels.index(t)
+            expect[:, feats] = w[k] * actions[:, k]
+        tol = 1e-6 * (1 + seen[t_next][0].abs().max())  # float32 rounding of x + delta - x
+        assert torch.allclose(delta, expect, atol=float(tol)), (t, levels)
+
+
+def test_residual_hook_refuses_bad_actions_and_skipped_levels():
+    sched = ResidualSchedule(10, (9, 8))
+    chain = list(range(9, -1, -1))
+    with pytest.raises(ValueError, match=r"actions must have shape \(B, 2, 3\)"):
+        residual_hook(sched, torch.zeros(4, 5), chain, [0, 1, 2])
+    with pytest.raises(ValueError, match="finite"):
+        residual_hook(sched, torch.full((4, 2, 3), float("nan")), chain, [0, 1, 2])
+    with pytest.raises(ValueError, match="never steps from the perturbed levels"):
+        residual_hook(sched, torch.zeros(4, 2, 3), [9, 5, 0], [0, 1, 2])
+
+
+# -- eq. 8 and the tasks --------------------------------------------------------------------
+
+
+def test_joystick_reward_eq8_on_hand_made_values():
+    h = torch.tensor([0.0, 0.0, math.pi, 1.0, 0.5])
+    v = torch.tensor([1.0, 2.0, 1.0, 1.5, 0.0])
+    gh = torch.tensor([0.0, 0.0, 0.0, 1.0 + math.pi / 2, 0.5])
+    gv = torch.tensor([1.0, 1.0, 1.0, 1.0, 3.0])
+    r = joystick_reward(h, v, gh, gv)
+    expect = torch.tensor(
+        [1.0, math.exp(-1), math.exp(-2), math.exp(-1) * math.exp(-0.5), math.exp(-3)]
+    )
+    assert torch.allclose(r, expect, atol=1e-6)
+
+
+def _chars(xy, heading=0.0):
+    ch = Characters.zeros(len(xy))
+    ch.xy = torch.as_tensor(xy, dtype=torch.float32)
+    ch.heading = torch.full((len(xy),), float(heading))
+    return ch
+
+
+def test_target_is_reached_within_15cm_even_between_frames_and_then_moves():
+    task = TargetTask()
+    task.setup(3, torch.Generator().manual_seed(0))
+    ch = _chars([[0.0, 0.0]] * 3)
+    task.set_targets(torch.tensor([[1.0, 0.0], [1.0, 0.2], [1.0, 0.1]]))
+    prev = torch.tensor([[0.9, 0.0], [0.9, 0.0], [0.8, 0.0]])
+    ch.xy = torch.tensor([[0.95, 0.0], [0.95, 0.0], [1.2, 0.0]])  # row 2 walks past its target
+    reward, term, info = task.step(ch, prev)
+    assert info["hit"].tolist() == [True, False, True]
+    assert not term.any()
+    assert (reward[[0, 2]] > task.bonus).all() and reward[1] < task.bonus
+    moved = (task.target - torch.tensor([[1.0, 0.0], [1.0, 0.2], [1.0, 0.1]])).norm(dim=1)
+    assert moved[0] > 0 and moved[1] == 0 and moved[2] > 0
+    d = (task.target[[0, 2]] - ch.xy[[0, 2]]).norm(dim=1)
+    assert ((d >= task.min_distance - 1e-5) & (d <= task.region + 1e-5)).all()
+
+
+def test_target_observation_is_in_the_heading_frame():
+    task = TargetTask()
+    task.setup(1, torch.Generator())
+    task.set_targets(torch.tensor([[0.0, 5.0]]))
+    obs = task.observe(_chars([[0.0, 0.0]], heading=math.pi / 2))  # facing +y: target ahead
+    assert torch.allclose(obs, torch.tensor([[0.5, 0.0, 1.0, 0.0]]), atol=1e-6)
+
+
+def test_joystick_redraws_direction_every_120_and_speed_every_240_frames():
+    task = JoystickTask()
+    task.setup(1, torch.Generator().manual_seed(1))
+    ch = _chars([[0.0, 0.0]])
+    task.reset(torch.tensor([0]), ch)
+    h0, v0 = task.goal_heading.clone(), task.goal_speed.clone()
+    changes = []
+    for f in range(1, 481):
+        ch.frame = torch.tensor([f])
+        task.step(ch, ch.xy)
+        changes.append((bool(task.goal_heading != h0), bool(task.goal_speed != v0)))
+        h0, v0 = task.goal_heading.clone(), task.goal_speed.clone()
+    heading_changes = [f for f, (h, _) in enumerate(changes, 1) if h]
+    speed_changes = [f for f, (_, v) in enumerate(changes, 1) if v]
+    assert heading_changes == [120, 240, 360, 480]
+    assert speed_changes == [240, 480]
+
+
+def test_joystick_speeds_outside_the_corpus_range_are_accepted_but_reported():
+    task = JoystickTask(corpus_speed=(0.0, 4.5))
+    task.setup(2, torch.Generator())
+    task.command(torch.tensor([0.0, 0.0]), torch.tensor([2.0, 9.0]))
+    _, _, info = task.step(_chars([[0.0, 0.0]] * 2), torch.zeros(2, 2))
+    assert info["out_of_range"].tolist() == [False, True]
+    assert task.goal_speed.tolist() == [2.0, 9.0]
+
+
+def test_path_episode_ends_when_the_character_leaves_the_path():
+    task = PathTask(max_deviation=1.0)
+    task.setup(2, torch.Generator().manual_seed(0))
+    ch = _chars([[0.0, 0.0]] * 2)
+    task.reset(torch.arange(2), ch)
+    assert torch.allclose(task.path[:, 0], torch.zeros(2, 2))
+    ch.frame = torch.tensor([30, 30])
+    ch.xy = task.path[:, 30] + torch.tensor([[0.0, 0.0], [0.0, 1.5]])
+    ahead = task.path[:, 35] - task.path[:, 30]  # face along the path
+    ch.heading = torch.atan2(ahead[:, 1], ahead[:, 0])
+    reward, term, info = task.step(ch, ch.xy)
+    assert term.tolist() == [False, True]
+    assert torch.allclose(info["deviation"], torch.tensor([0.0, 1.5]), atol=1e-5)
+    w = task.w_facing
+    assert reward[0] == pytest.approx(1.0 + w) and reward[1] == pytest.approx(math.exp(-3) + w)
+    ch.heading = ch.heading + math.pi  # backwards along the path: no facing reward
+    assert task.step(ch, ch.xy)[0][0] == pytest.approx(1.0, abs=1e-5)
+
+
+# -- the environments -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("task", [TargetTask, JoystickTask, PathTask])
+def test_single_character_env_passes_gymnasiums_checker(base, starts, task):
+    from gymnasium.utils.env_checker import check_env
+
+    cm = as_control_model(base)
+    env = SteeringEnv(cm, ResidualSteerer(cm, ResidualSchedule.top(20, 4), "root"), task(), starts)
+    with pytest.warns(UserWarning, match="infinity"):  # unbounded frames: Box(-inf, inf)
+        check_env(env, skip_render_check=True)
+
+
+def test_one_batched_model_call_per_level_steps_every_character(base, starts):
+    cm = as_control_model(base)
+    env = SteeringVecEnv(
+        cm, ResidualSteerer(cm, ResidualSchedule.top(20, 5), "all"), TargetTask(), starts, 7
+    )
+    calls = []
+    handle = cm.net.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    try:
+        env.reset(seed=0)
+        env.step(np.zeros((7, env.single_action_space.shape[0]), np.float32))
+    finally:
+        handle.remove()
+    assert calls == [7] * 20
+
+
+def test_vec_env_restarts_finished_episodes_in_the_same_step(base, starts):
+    cm = as_control_model(base)
+    steer = ResidualSteerer(cm, ResidualSchedule.top(20, 2), "root")
+    env = SteeringVecEnv(cm, steer, JoystickTask(max_frames=3), starts, 4, seed=0)
+    env.reset(seed=0)
+    a = np.zeros((4, 6), np.float32)
+    for _ in range(2):
+        *_, trunc, infos = env.step(a)
+        assert not trunc.any() and "final_obs" not in infos
+    obs, _, term, trunc, infos = env.step(a)
+    assert trunc.all() and not term.any() and infos["_final_obs"].all()
+    assert (infos["episode_length"] == 3).all()
+    assert (env.ch.frame == 0).all() and torch.allclose(env.ch.xy, torch.zeros(4, 2))
+    assert not np.allclose(obs, infos["final_obs"])
+
+
+def test_env_refuses_actions_of_the_wrong_shape_or_not_finite(base, starts):
+    env = build_env(
+        RLConfig(task="target", num_envs=3, batch_size=96, features="root", n_levels=4), base
+    )
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions must have shape \(3, 12\)"):
+        env.step(np.zeros((3, 13), np.float32))
+    bad = np.zeros((3, 12), np.float32)
+    bad[1, 4] = np.inf
+    with pytest.raises(ValueError, match="environment 1 holds NaN/Inf"):
+        env.step(bad)
+
+
+def test_latent_steerer_decodes_the_action_as_mvae_latent():
+    mvae = minimdm.pretrained("mvae")
+    cm = as_control_model(mvae)
+    s = LatentSteerer(cm, scale=2.0)
+    cond = torch.randn(5, cm.dim)
+    a = torch.rand(5, s.action_dim) * 2 - 1
+    assert torch.allclose(s(cond, a, torch.Generator()), cm.net.decode(2 * a, cond))
+
+
+# -- PPO and the policy checkpoint ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_policy(base, tmp_path_factory):
+    """A short PPO run (about 100,000 frames, 30 s) on target reaching, on a 4-step DDIM chain
+    of the base model with residuals on its two noisiest steps."""
+    from minimdm.rl.train import train_policy
+
+    out = tmp_path_factory.mktemp("rl") / "target"
+    config = RLConfig(
+        task="target",
+        task_options={"max_frames": 150},
+        steps=4,
+        levels=[19, 13],
+        tied=True,
+        features="root",
+        residual_scale=2.0,
+        num_envs=32,
+        n_steps=16,
+        batch_size=256,
+        lr=1e-3,
+        total_steps=32 * 16 * 200,
+        seed=0,
+    )
+    return config, train_policy(config, out, progress=False, base=base), out
+
+
+def test_tiny_ppo_run_beats_random_actions(tiny_policy):
+    from minimdm.rl.rollout import steer
+
+    config, result, out = tiny_policy
+    lines = (out / "log.jsonl").read_text().splitlines()
+    assert len(lines) == len(result.history) == 200
+    steering = load_steering(out)
+    kw = dict(n_frames=150, num_envs=32, seed=123)
+    trained = steer(steering, **kw).reward.mean()
+    steering.policy.log_std.fill_(0.0)
+    with torch.no_grad():  # random actions: zero mean, unit std, clipped to [-1, 1]
+        steering.policy.head.weight.zero_()
+        steering.policy.head.bias.zero_()
+    random = steer(steering, deterministic=False, **kw).reward.mean()
+    assert trained > random + 0.1, (float(trained), float(random))
+
+
+def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny_policy):
+    config, result, out = tiny_policy
+    assert sorted(p.name for p in out.iterdir()) == ["log.jsonl", "model.json", "model.safetensors"]
+    meta = result.checkpoint.metadata
+    assert meta["base"]["name"] == "amdm" and meta["task"]["name"] == "target"
+    assert meta["env_steps"] == config.total_steps
+    steering = load_steering(out, task="target")
+    assert steering.steerer.schedule.levels == (19, 13) and steering.cm.steps == 4
+    obs = torch.randn(9, steering.policy.obs_dim)
+    sb3_actions, _ = result.model.predict(obs.numpy(), deterministic=True)
+    assert np.allclose(steering.policy.act(obs).numpy(), sb3_actions, atol=1e-6)
+
+
+def test_policy_for_another_base_model_or_task_is_refused(tiny_policy):
+    _, _, out = tiny_policy
+    with pytest.raises(CheckpointMismatchError, match=r"trained on the base model 'amdm'.*'mse'"):
+        load_steering(out, base="mse")
+    with pytest.raises(CheckpointMismatchError, match="task 'target', not 'joystick'"):
+        load_steering(out, task="joystick")
+
+
+def test_a_tied_residual_is_the_same_vector_at_every_chosen_level_weighted_by_w():
+    sched = ResidualSchedule(10, (9, 7, 5), "linear", 3.0, tied=True)
+    a = torch.tensor([[1.0, -2.0]])
+    hook = residual_hook(sched, a, range(9, -1, -1), [0, 4])
+    x = torch.zeros(1, 5)
+    added = {t: hook(t - 1, x, x) for t in range(10)}
+    for t, w in zip((9, 7, 5), (3.0, 2.0, 1.0), strict=True):
+        assert torch.allclose(added[t], torch.tensor([[w, 0, 0, 0, -2 * w]]))
+    assert all(torch.equal(added[t], x) for t in (8, 6, 4, 3, 2, 1, 0))
