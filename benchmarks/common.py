@@ -34,10 +34,11 @@ def sync(device: str) -> None:
         torch.cuda.synchronize(device)
 
 
-def emit(record: dict, file=None) -> None:
-    """Print one JSON line (and append it to ``file`` if given)."""
+def emit(record: dict, file=None, quiet: bool = False) -> None:
+    """Print one JSON line (unless ``quiet``) and append it to ``file`` if given."""
     line = json.dumps(record)
-    print(line, flush=True)
+    if not quiet:
+        print(line, flush=True)
     if file is not None:
         with open(file, "a") as f:
             f.write(line + "\n")

@@ -35,6 +35,7 @@ from minimdm.amdm.models import (
     timestep_embedding,
 )
 from minimdm.checkpoint import load_checkpoint
+from minimdm.rl.policy import PolicyNet
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINTS = ROOT / "checkpoints"
@@ -185,6 +186,14 @@ def compare(model: torch.nn.Module, prefix: str = "", sd: Recorder | None = None
             compare(model.transition, "transition.", sd)
             for name in ("y", "x", "xz"):  # the normalisation buffers
                 sd[f"{name}_mean"], sd[f"{name}_std"]  # noqa: B018
+        elif isinstance(model, PolicyNet):  # SB3's MlpPolicy actor: Linear, Tanh, ..., Linear
+            obs = _randn(g, B, model.obs_dim)
+            h, i = obs, 0
+            while f"body.{i}.weight" in sd:
+                h = torch.tanh(_lin(sd, f"body.{i}", h))
+                i += 2
+            assert torch.equal(model(obs), _lin(sd, "head", h))
+            sd["log_std"]  # noqa: B018  (kept for sampling; the mean is the action)
         else:
             raise AssertionError(f"no reference for {type(model).__name__}")
     return sd

@@ -111,8 +111,11 @@ def test_with_changes_copies_checks_and_converts():
 
 
 def test_every_shipped_config_loads_into_its_dataclass():
+    from minimdm.rl.train import RLConfig
+
     for f in sorted((ROOT / "configs").glob("*.yaml")):
         cls = AAMDMTrainConfig if f.name.startswith("aamdm") else TrainConfig
+        cls = RLConfig if f.name.startswith("rl_") else cls
         cfg = load_config(f, cls)
         for name, value in vars(cfg).items():  # every float field holds a float
             if isinstance(getattr(cls, name, None), float) and value is not None:
@@ -128,3 +131,17 @@ def test_cli_set_overrides_go_through_the_loader(capsys, tmp_path):
     code = cli.main(["train", BOOK, "--set", "depth=deep", "--out", str(tmp_path)])
     assert code == 2 and "depth must be int, got 'deep'" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing was trained or written
+
+
+def test_rl_command_rejects_a_bad_config_before_training(capsys, tmp_path):
+    code = cli.main(["rl", str(ROOT / "configs" / "rl_target.yaml"), "--set", "tsk=path",
+                     "--out", str(tmp_path)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and "--set: unknown config keys ['tsk']" in err and "RLConfig knows" in err
+    code = cli.main(["rl", str(ROOT / "configs" / "rl_target.yaml"), "--set", "task=dance",
+                     "--out", str(tmp_path)])  # fmt: skip
+    assert (
+        code == 2
+        and "task must be one of ['joystick', 'path', 'target']" in capsys.readouterr().err
+    )
+    assert not any(tmp_path.iterdir())

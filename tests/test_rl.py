@@ -157,6 +157,23 @@ def test_target_is_reached_within_15cm_even_between_frames_and_then_moves():
     assert ((d >= task.min_distance - 1e-5) & (d <= task.region + 1e-5)).all()
 
 
+def test_a_queue_of_targets_appears_in_order_then_random_ones():
+    task = TargetTask()
+    task.setup(2, torch.Generator().manual_seed(0))
+    ch = _chars([[0.0, 0.0]] * 2)
+    task.reset(torch.arange(2), ch)
+    queue = torch.tensor([[[1.0, 0.0], [2.0, 0.0]], [[0.0, 1.0], [0.0, 2.0]]])
+    task.set_targets(queue)
+    assert torch.equal(task.target, queue[:, 0])
+    ch.xy = queue[:, 0].clone()
+    task.step(ch, ch.xy)
+    assert torch.equal(task.target, queue[:, 1])
+    ch.xy = queue[:, 1].clone()
+    task.step(ch, ch.xy)
+    d = (task.target - ch.xy).norm(dim=1)
+    assert ((d >= task.min_distance - 1e-5) & (d <= task.region + 1e-5)).all()
+
+
 def test_target_observation_is_in_the_heading_frame():
     task = TargetTask()
     task.setup(1, torch.Generator())
@@ -183,6 +200,24 @@ def test_joystick_redraws_direction_every_120_and_speed_every_240_frames():
     assert speed_changes == [240, 480]
 
 
+def test_preset_joystick_commands_drive_every_frame():
+    task = JoystickTask()
+    task.setup(2, torch.Generator())
+    heading = torch.tensor([[0.0, 1.0, 2.0], [0.5, 0.5, -1.0]])
+    speed = torch.tensor([[1.0, 1.5, 2.0], [0.5, 0.6, 0.7]])
+    task.preset(heading, speed)
+    ch = _chars([[0.0, 0.0]] * 2)
+    seen = []
+    for f in range(1, 5):
+        seen.append(task.goal_heading.clone())
+        ch.frame = torch.tensor([f, f])
+        task.step(ch, ch.xy)
+    assert torch.equal(torch.stack(seen, 1), heading[:, [0, 1, 2, 2]])
+    assert torch.equal(task.goal_speed, speed[:, 2])
+    with pytest.raises(ValueError, match=r"shape \(2, P\)"):
+        task.preset(heading[:1], speed[:1])
+
+
 def test_joystick_speeds_outside_the_corpus_range_are_accepted_but_reported():
     task = JoystickTask(corpus_speed=(0.0, 4.5))
     task.setup(2, torch.Generator())
@@ -205,10 +240,9 @@ def test_path_episode_ends_when_the_character_leaves_the_path():
     reward, term, info = task.step(ch, ch.xy)
     assert term.tolist() == [False, True]
     assert torch.allclose(info["deviation"], torch.tensor([0.0, 1.5]), atol=1e-5)
-    w = task.w_facing
-    assert reward[0] == pytest.approx(1.0 + w) and reward[1] == pytest.approx(math.exp(-3) + w)
-    ch.heading = ch.heading + math.pi  # backwards along the path: no facing reward
-    assert task.step(ch, ch.xy)[0][0] == pytest.approx(1.0, abs=1e-5)
+    assert reward[0] == pytest.approx(1.0) and reward[1] == pytest.approx(math.exp(-3))
+    ch.heading = ch.heading + math.pi  # backwards along the path: the facing factor is 1 - w
+    assert task.step(ch, ch.xy)[0][0] == pytest.approx(1.0 - task.w_facing, abs=1e-5)
 
 
 # -- the environments -----------------------------------------------------------------------

@@ -161,6 +161,8 @@ class SteeringVecEnv(VectorEnv):
         starts: (P, D) the corpus frames episodes start from, in feature units.
         num_envs: N.
         seed: seeds the generator of starts, goals and the model's noise.
+        action_penalty: subtracted from the reward times the mean squared action: the policy
+            pays for every push away from what the base model would do by itself.
 
     Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's.
     Action: (N, A) float32 in [-1, 1].
@@ -176,6 +178,7 @@ class SteeringVecEnv(VectorEnv):
         starts: Tensor,
         num_envs: int = 64,
         seed: int = 0,
+        action_penalty: float = 0.0,
     ) -> None:
         starts = torch.as_tensor(starts, dtype=torch.float32)
         D = cm.dim
@@ -184,6 +187,7 @@ class SteeringVecEnv(VectorEnv):
                 f"starts must have shape (P, {D}) with P >= 1, got {tuple(starts.shape)}"
             )
         self.cm, self.steerer, self.task = cm, steerer, task
+        self.action_penalty = float(action_penalty)
         self.starts = cm.normalize(starts.to(cm.device))
         self.num_envs = int(num_envs)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
@@ -256,6 +260,7 @@ class SteeringVecEnv(VectorEnv):
         a = a.clamp(-1.0, 1.0)
         _, prev = self.advance(a)
         reward, terminated, info = self.task.step(self.ch, prev)
+        reward = reward - self.action_penalty * a.pow(2).mean(1)
         truncated = (self.ch.frame >= self.task.max_frames) & ~terminated
         self.returns += reward
         obs = self._obs()
@@ -287,8 +292,8 @@ class SteeringEnv(gym.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, cm, steerer, task, starts, seed: int = 0) -> None:
-        self.vec = SteeringVecEnv(cm, steerer, task, starts, 1, seed)
+    def __init__(self, cm, steerer, task, starts, seed: int = 0, action_penalty: float = 0.0):
+        self.vec = SteeringVecEnv(cm, steerer, task, starts, 1, seed, action_penalty)
         self.observation_space = self.vec.single_observation_space
         self.action_space = self.vec.single_action_space
 
@@ -302,6 +307,7 @@ class SteeringEnv(gym.Env):
         v = self.vec
         _, prev = v.advance(a)
         reward, terminated, info = v.task.step(v.ch, prev)
+        reward = reward - v.action_penalty * a.pow(2).mean(1)
         truncated = bool(v.ch.frame[0] >= v.task.max_frames) and not bool(terminated[0])
         return (
             v._obs()[0],

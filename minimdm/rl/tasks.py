@@ -119,10 +119,10 @@ class TargetTask(Task):
     The target lies uniformly in a ``2 region`` x ``2 region`` square around the character (the
     paper's 20 m x 20 m). It is reached when the root (hips) is within ``radius`` of it, checked
     along the segment the root moved over in the frame (a fast character must not skip over it).
-    The reward adds a distance term, the progress towards the target in m/s, a facing term
-    (:math:`(1 + \\cos\theta) / 2` for the target's angle :math:`\theta` from the heading: without
-    it PPO found that walking backwards to the target pays as well) and a one-time ``bonus`` on
-    reaching it; the new target then appears.
+    The reward adds a distance term, the progress towards the target in m/s counted only as
+    far as the character faces it (times :math:`(1 + \\cos\\theta) / 2` for the target's angle
+    :math:`\\theta` from the heading: without it PPO found that lunging backwards to the target
+    pays as well), and a one-time ``bonus`` on reaching it; the new target then appears.
 
     Observation: the target in the heading frame, divided by ``region``, and its direction
     (cos, sin) -- 4 numbers.
@@ -135,7 +135,6 @@ class TargetTask(Task):
     """New targets are at least this far from the character."""
     w_distance: float = 0.5
     w_progress: float = 1.0
-    w_facing: float = 0.5
     bonus: float = 10.0
 
     def __post_init__(self) -> None:
@@ -144,30 +143,50 @@ class TargetTask(Task):
     def setup(self, n: int, generator: torch.Generator) -> None:
         super().setup(n, generator)
         self.target = torch.zeros(n, 2)
+        self.queue = torch.zeros(n, 0, 2)  # (N, Q, 2) fixed targets to come (set_targets)
+        self.queue_pos = torch.zeros(n, dtype=torch.long)
         self.reached = torch.zeros(n, dtype=torch.long)
         self.first_reach = torch.full((n,), -1, dtype=torch.long)
 
     def place(self, idx: Tensor, ch: Characters) -> None:
-        """Draw new targets for ``idx`` around the characters' current positions."""
+        """New targets for ``idx``: the next of their queue (:meth:`set_targets`), else drawn
+        around the characters' current positions."""
         m = len(idx)
         r = (
             self.min_distance
             + (self.region - self.min_distance) * torch.rand(m, generator=self.generator).sqrt()
         )
         a = self._uniform(m, -math.pi, math.pi)
-        # uniform over the square minus a disc is close to uniform over the annulus; the annulus
-        # keeps targets inside the region in every direction
-        self.target[idx] = ch.xy[idx] + torch.stack([r * torch.cos(a), r * torch.sin(a)], -1)
+        # uniform over the annulus between min_distance and region: the square's corners left
+        # out keep every direction equally likely
+        new = ch.xy[idx] + torch.stack([r * torch.cos(a), r * torch.sin(a)], -1)
+        pos = self.queue_pos[idx]
+        queued = pos < self.queue.shape[1]
+        if queued.any():
+            q = idx[queued]
+            new[queued] = self.queue[q, pos[queued]]
+        self.queue_pos[idx] = pos + 1
+        self.target[idx] = new
 
     def reset(self, idx: Tensor, ch: Characters) -> None:
+        self.queue_pos[idx] = self.queue.shape[1]  # random targets unless a queue is set
         self.place(idx, ch)
         self.reached[idx] = 0
         self.first_reach[idx] = -1
 
     def set_targets(self, targets: Tensor, idx: Tensor | None = None) -> None:
-        """Put targets (M, 2) (world metres) for the environments ``idx`` (default: all)."""
-        idx = torch.arange(self.n) if idx is None else idx
-        self.target[idx] = torch.as_tensor(targets, dtype=torch.float32).reshape(-1, 2)
+        """Fix the targets of the environments ``idx`` (default: all), world metres: (M, 2) one
+        each, or (M, Q, 2) a sequence of Q, each appearing when the previous is reached (then
+        random ones again)."""
+        idx = torch.arange(self.n) if idx is None else torch.as_tensor(idx)
+        t = torch.as_tensor(targets, dtype=torch.float32)
+        t = t.reshape(len(idx), -1, 2) if t.dim() != 3 else t
+        if t.shape[1] != self.queue.shape[1]:
+            queue = torch.zeros(self.n, t.shape[1], 2)
+            self.queue, self.queue_pos = queue, torch.full((self.n,), t.shape[1], dtype=torch.long)
+        self.queue[idx] = t
+        self.target[idx] = t[:, 0]
+        self.queue_pos[idx] = 1
 
     def observe(self, ch: Characters) -> Tensor:
         local = to_heading_frame(self.target - ch.xy, ch.heading)  # (N, 2)
@@ -183,10 +202,11 @@ class TargetTask(Task):
         hit = closest < self.radius
         ahead = to_heading_frame(self.target - ch.xy, ch.heading)  # (N, 2)
         cos = ahead[:, 0] / ahead.norm(dim=-1).clamp_min(1e-6)
+        progress = (before - after) * ch.fps  # m/s towards the target
+        facing = 0.5 * (1 + cos)
         reward = (
             self.w_distance * torch.exp(-0.5 * after)
-            + self.w_progress * (before - after) * ch.fps
-            + self.w_facing * 0.5 * (1 + cos)
+            + self.w_progress * torch.where(progress > 0, progress * facing, progress)
             + self.bonus * hit.float()
         )
         first = hit & (self.first_reach < 0)
@@ -233,6 +253,22 @@ class JoystickTask(Task):
         self.goal_heading = torch.zeros(n)
         self.goal_speed = torch.zeros(n)
         self.out_of_range = torch.zeros(n, dtype=torch.bool)
+        self.preset_heading: Tensor | None = None
+        self.preset_speed: Tensor | None = None
+
+    def preset(self, heading: Any, speed: Any) -> None:
+        """Drive every environment by preset commands (N, P) per frame (radians, m/s) instead
+        of random ones: frame f's command is column f (the last one after P frames). The same
+        sequences for every method make their tracking errors comparable."""
+        h = torch.as_tensor(heading, dtype=torch.float32)
+        v = torch.as_tensor(speed, dtype=torch.float32)
+        if h.shape != v.shape or h.dim() != 2 or h.shape[0] != self.n:
+            raise ValueError(
+                f"heading and speed must both have shape ({self.n}, P), got "
+                f"{tuple(h.shape)} and {tuple(v.shape)}"
+            )
+        self.preset_heading, self.preset_speed = h, v
+        self.command(h[:, 0], v[:, 0])
 
     def command(self, heading: Any, speed: Any, idx: Tensor | None = None) -> None:
         """Set the command (radians, m/s) of ``idx`` (default all) -- the user's joystick."""
@@ -249,6 +285,11 @@ class JoystickTask(Task):
         self.command(direction, self._uniform(m, *self.speed_range), idx)
 
     def _redraw(self, ch: Characters) -> None:
+        if self.preset_heading is not None:
+            f = ch.frame.clamp(max=self.preset_heading.shape[1] - 1)
+            rows = torch.arange(self.n)
+            self.command(self.preset_heading[rows, f], self.preset_speed[rows, f])
+            return
         f = ch.frame
         new_dir = ((f % self.direction_every) == 0) & (f > 0)
         new_speed = ((f % self.speed_every) == 0) & (f > 0)
@@ -333,7 +374,7 @@ class PathTask(Task):
     speed_range: tuple[float, float] = (0.8, 1.8)
     turn_max: float = 0.8
     max_deviation: float = 2.0
-    w_facing: float = 0.3
+    w_facing: float = 0.5
 
     def __post_init__(self) -> None:
         self.name = "path"
@@ -375,7 +416,7 @@ class PathTask(Task):
         d = (now - ch.xy).norm(dim=-1)
         tangent = to_heading_frame(ahead - now, ch.heading)  # the path's direction
         cos = tangent[:, 0] / tangent.norm(dim=-1).clamp_min(1e-6)
-        reward = torch.exp(-2 * d) + self.w_facing * 0.5 * (1 + cos)
+        reward = torch.exp(-2 * d) * (1 - self.w_facing + self.w_facing * 0.5 * (1 + cos))
         return reward, d > self.max_deviation, {"deviation": d}
 
 

@@ -73,6 +73,8 @@ class RLConfig:
     """A-MDM: one residual for every perturbed step (True) or one per step (the paper)."""
     latent_scale: float = 2.0
     """MVAE: the latent is ``latent_scale`` times the action."""
+    action_penalty: float = 0.0
+    """Reward minus this times the mean squared action (stay close to the base model)."""
     num_envs: int = 64
     """Characters stepped together (one batched model call)."""
     total_steps: int = 1_000_000
@@ -161,6 +163,7 @@ def build_env(
         starts,
         num_envs or config.num_envs,
         config.seed if seed is None else seed,
+        config.action_penalty,
     )
 
 

@@ -1,0 +1,378 @@
+"""Chapter 7: RL steering of A-MDM against the book's other controls (A-MDM §6-7.4, Figs. 11-13).
+
+Prints one JSON line per measurement (and appends it to ``--out``). Not a test.
+
+* ``curves`` (Fig. 11): learning curves on target reaching for A-MDM steered by residuals and
+  the MVAE-style baseline steered through its latent, same task, PPO settings and budget, over
+  seeds; plus the residual per step (the paper's a_f) against one tied residual. Each curve's
+  rollouts go to ``--curves`` (JSON lines) for the chapter's plot.
+* ``target``: the same targets for the shipped policy (``rl_target``), chapter 5's beam search
+  and chapter 6's inpainting along the straight line to the goal: success within 15 cm, time to
+  target, foot sliding, bone error, acceleration and the share of frames stepping backwards.
+* ``joystick``: heading and speed errors against preset commands, the shipped policy
+  (``rl_joystick``) against the unsteered base model.
+* ``path`` (Fig. 13): deviation from procedural paths, the shipped policy (``rl_path``)
+  against inpainting the same path.
+* ``diversity`` (Fig. 12): runs from one start through the same sequence of targets; how far
+  apart their root paths are.
+* ``speed``: policy + A-MDM in ms/frame at batch 1 on one thread, with the base model alone.
+
+Every method starts from the same state: frame 20 of the held-out take
+``dataset-1_walk_normal_001``, at the origin facing +x. Seeds change the models' noise (and the
+beam's candidates); targets, commands and paths are fixed.
+
+    python benchmarks/rl_steering.py                        # everything but the curves
+    python benchmarks/rl_steering.py --only curves          # about 25 min on 2 cores
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+import torch
+from common import ROOT, emit, hardware
+
+import minimdm
+from minimdm import control as C
+from minimdm.amdm import evaluation
+from minimdm.motion import metrics
+from minimdm.rl import load_steering, procedural_paths
+from minimdm.rl.rollout import steer
+from minimdm.rl.train import load_config, train_policy
+
+START = ("dataset-1_walk_normal_001", 20)
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def mean_ci(values) -> dict:
+    """Mean and 95% t-interval half-width over seeds."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return {"mean": None, "ci95": None, "n": 0}
+    t = {1: float("nan"), 2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78}.get(len(v), 2.0)
+    half = t * v.std(ddof=1) / math.sqrt(len(v)) if len(v) > 1 else None
+    return {"mean": round(float(v.mean()), 4), "ci95": None if half is None else round(half, 4),
+            "n": int(len(v))}  # fmt: skip
+
+
+def backward_share(features: torch.Tensor, fps: float, threshold: float = 0.1) -> float:
+    """Share of frames whose root moves backwards (heading-frame forward velocity below
+    ``-threshold`` m/s)."""
+    return float((features[..., 0] * fps < -threshold).float().mean())
+
+
+def quality(pos: torch.Tensor, feats: torch.Tensor, lengths, skeleton, offsets, fps) -> dict:
+    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2), backward share, averaged over the
+    characters, each over its first ``lengths[i]`` frames."""
+    ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
+    rows = []
+    for i, n in enumerate(lengths):
+        n = max(int(n), 4)
+        p = pos[i : i + 1, :n]
+        rows.append([
+            metrics.foot_sliding(p, skeleton.foot_indices, foot_offset=offsets),
+            metrics.bone_length_error(p, skeleton.parents, ref),
+            metrics.joint_acceleration(p),
+            backward_share(feats[i, :n], fps),
+        ])  # fmt: skip
+    return dict(zip(("FS", "Bone.Err", "Jnt.Accel", "backward"), np.mean(rows, axis=0).tolist(),
+                    strict=True))  # fmt: skip
+
+
+def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None = None) -> None:
+    keys = per_seed[0].keys()
+    row = {"bench": bench, "method": method, "seeds": len(per_seed), **(extra or {})}
+    row.update({k: mean_ci([s[k] for s in per_seed]) for k in keys})
+    emit(row, OUT)
+
+
+# --------------------------------------------------------------------------- curves
+
+
+def curves(args) -> None:
+    base_cfg = load_config(ROOT / "configs" / "rl_target.yaml")
+    runs = {
+        "amdm_residual_tied": {},
+        "mvae_latent": {"base": "mvae"},
+        "amdm_residual_per_step": {"tied": False},
+    }
+    import dataclasses
+
+    for name, change in runs.items():
+        finals = []
+        for seed in range(args.seeds):
+            cfg = dataclasses.replace(base_cfg, total_steps=args.budget, seed=seed, **change)
+            out = RESULTS / "rl_curve_runs" / f"{name}_s{seed}"
+            r = train_policy(cfg, out, progress=False, num_threads=args.threads)
+            for row in r.history:
+                emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)
+            tail = [h["return_mean"] for h in r.history[-max(1, len(r.history) // 5) :]
+                    if h["return_mean"] is not None]  # fmt: skip
+            finals.append({
+                "final_return": float(np.mean(tail)) if tail else float("nan"),
+                "final_reward_per_frame": float(np.mean([h["reward_mean"] for h in
+                                                         r.history[-len(r.history) // 5 :]])),
+                "seconds": r.seconds,
+            })  # fmt: skip
+        summarize("curves", name, finals, {"budget": args.budget, "task": "target"})
+
+
+# --------------------------------------------------------------------------- target reaching
+
+
+def fixed_goals(n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` targets uniform in the 20 m x 20 m square around the origin, at least 1 m away."""
+    rng = np.random.default_rng(seed)
+    g = rng.uniform(-10, 10, size=(4 * n, 2))
+    g = g[np.linalg.norm(g, axis=1) > 1.0][:n]
+    return torch.tensor(g, dtype=torch.float32)
+
+
+def first_hit(hit: torch.Tensor) -> torch.Tensor:
+    """(N,) 1-based frame of the first True per row of (N, F), -1 if none."""
+    any_ = hit.any(dim=1)
+    idx = hit.float().argmax(dim=1) + 1
+    return torch.where(any_, idx, torch.full_like(idx, -1))
+
+
+def target(amdm, start, ctx, args) -> None:
+    goals = fixed_goals(args.targets)
+    N, F = len(goals), args.max_frames
+    pol = load_steering(args.rl_target)
+    fps = pol.cm.fps
+    walk_speed = ctx["walk_speed"]
+    res = {"rl_policy": [], "beam_search": [], "inpaint_line": []}
+    for seed in range(args.seeds):
+        t0 = time.perf_counter()
+        m = steer(pol, F, N, starts=start[None],
+                  setup=lambda env: env.task.set_targets(goals), seed=seed)  # fmt: skip
+        sec = time.perf_counter() - t0
+        done = first_hit(m.info["hit"])
+        res["rl_policy"].append(_target_row(m.positions, m.features, done, F, ctx, sec, fps))
+
+        g = torch.Generator().manual_seed(seed)
+        t0 = time.perf_counter()
+        b = C.beam_search(amdm, start.expand(N, -1), C.target_score(goals.double()), F,
+                          pool=args.pool, generator=g, stop_fn=C.reached(goals.double()))  # fmt: skip
+        sec = time.perf_counter() - t0
+        done = b.info["done_at"]
+        res["beam_search"].append(_target_row(b.positions, b.features, done, F, ctx, sec, fps))
+
+        rows = []
+        t0 = time.perf_counter()
+        for i in range(N):  # each line has its own length (time at walking speed)
+            path = C.polyline_path(
+                torch.stack([torch.zeros(2), goals[i]]).double(), walk_speed, fps
+            )
+            con = C.root_path_targets(amdm.layout, path)
+            g = torch.Generator().manual_seed(seed * 1000 + i)
+            mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
+            d = (mi.root_xy[-1] - goals[i]).norm()
+            n = mi.n_frames if d < 0.15 else -1
+            rows.append(_target_row(mi.positions[None], mi.features[None], torch.tensor([n]),
+                                    mi.n_frames, ctx, 0.0, fps))  # fmt: skip
+        sec = time.perf_counter() - t0
+        avg = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
+        avg["success_rate"] = float(np.mean([r["success_rate"] for r in rows]))
+        avg["seconds"] = sec
+        res["inpaint_line"].append(avg)
+    for name, per_seed in res.items():
+        summarize("target", name, per_seed,
+                  {"targets": N, "max_frames": F, "radius_m": 0.15, "pool": args.pool,
+                   "walk_speed_mps": round(walk_speed, 2)})  # fmt: skip
+
+
+def _target_row(pos, feats, done, F, ctx, seconds, fps) -> dict:
+    ok = done > 0
+    lengths = [int(d) if d > 0 else F for d in done]
+    q = quality(pos, feats, lengths, ctx["skeleton"], ctx["offsets"], fps)
+    return {
+        "success_rate": float(ok.float().mean()),
+        "seconds_to_target": float(done[ok].float().mean() / fps) if ok.any() else float("nan"),
+        **q,
+        "seconds": seconds,
+    }
+
+
+# --------------------------------------------------------------------------- joystick
+
+
+def commands(n: int, frames: int, seed: int = 0, speed=(0.5, 2.5)):
+    """Preset joystick commands (n, frames): direction redrawn every 120 frames, speed every 240."""
+    rng = np.random.default_rng(seed)
+    k_dir, k_speed = frames // 120 + 1, frames // 240 + 1
+    d = rng.uniform(0, 2 * math.pi, size=(n, k_dir))
+    v = rng.uniform(*speed, size=(n, k_speed))
+    f = np.arange(frames)
+    return torch.tensor(d[:, f // 120], dtype=torch.float32), torch.tensor(
+        v[:, f // 240], dtype=torch.float32
+    )
+
+
+def joystick(start, ctx, args) -> None:
+    pol = load_steering(args.rl_joystick)
+    N, F = args.commands, 480
+    heading, speed = commands(N, F + 1)
+    fps = pol.cm.fps
+    res = {"rl_policy": [], "unsteered": []}
+    for seed in range(args.seeds):
+        for name, zero in (("rl_policy", False), ("unsteered", True)):
+            m = steer(pol, F, N, starts=start[None], setup=lambda env: env.task.preset(heading, speed),
+                      seed=seed, zero_policy=zero)  # fmt: skip
+            he = m.info["heading_error"].abs() * 180 / math.pi
+            se = m.info["speed_error"].abs()
+            since = torch.arange(F) % 120  # frames since the last command change
+            settled = since >= 60
+            res[name].append({
+                "heading_error_deg": float(he.mean()),
+                "heading_error_settled_deg": float(he[:, settled].mean()),
+                "speed_error_mps": float(se.mean()),
+                "speed_error_settled_mps": float(se[:, settled].mean()),
+                "reward_eq8": float(m.reward.mean()),
+                **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
+            })  # fmt: skip
+    for name, per_seed in res.items():
+        summarize(
+            "joystick", name, per_seed, {"commands": N, "frames": F, "speed_range": [0.5, 2.5]}
+        )
+
+
+# --------------------------------------------------------------------------- path following
+
+
+def path(amdm, start, ctx, args) -> None:
+    pol = load_steering(args.rl_path)
+    N, F = args.paths, 450
+    paths = procedural_paths(
+        N, F, torch.Generator().manual_seed(0), pol.task.speed_range, pol.task.turn_max
+    )  # (N, F + 1, 2) from the origin facing +x
+    fps = pol.cm.fps
+    res = {"rl_policy": [], "inpaint_path": []}
+    for seed in range(args.seeds):
+        m = steer(pol, F, N, starts=start[None], setup=lambda env: env.task.set_paths(paths),
+                  seed=seed)  # fmt: skip
+        dev = m.info["deviation"]
+        res["rl_policy"].append({
+            "deviation_mean_m": float(dev.mean()), "deviation_max_m": float(dev.max(1).values.mean()),
+            **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
+        })  # fmt: skip
+        rows = []
+        for i in range(N):
+            con = C.root_path_targets(amdm.layout, paths[i].double())
+            g = torch.Generator().manual_seed(seed * 1000 + i)
+            mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
+            d = (mi.root_xy - paths[i, 1:]).norm(dim=-1)
+            rows.append({
+                "deviation_mean_m": float(d.mean()), "deviation_max_m": float(d.max()),
+                **quality(mi.positions[None], mi.features[None], [F], ctx["skeleton"],
+                          ctx["offsets"], fps),
+            })  # fmt: skip
+        res["inpaint_path"].append({k: float(np.mean([r[k] for r in rows])) for k in rows[0]})
+    for name, per_seed in res.items():
+        summarize("path", name, per_seed, {"paths": N, "frames": F})
+
+
+# --------------------------------------------------------------------------- diversity
+
+
+def diversity(start, args) -> None:
+    pol = load_steering(args.rl_target)
+    seq = torch.tensor([[4.0, 3.0], [0.0, 7.0], [-5.0, 4.0], [-3.0, -3.0]])
+    runs, F = args.diversity_runs, 600
+    per_seed = []
+    for seed in range(args.seeds):
+        # one batch of runs from the same start; the model's noise makes them differ
+        m = steer(pol, F, runs, starts=start[None],
+                  setup=lambda env: env.task.set_targets(seq.expand(runs, -1, -1)), seed=seed)  # fmt: skip
+        xy = m.root_xy  # (R, F, 2)
+        pair = (xy[:, None] - xy[None]).norm(dim=-1).mean(-1)  # (R, R)
+        reached = m.info["hit"].sum(1).float()
+        per_seed.append({
+            "pairwise_path_distance_m": float(pair.sum() / (runs * (runs - 1))),
+            "targets_reached_mean": float(reached.clamp(max=len(seq)).mean()),
+        })  # fmt: skip
+    summarize(
+        "diversity", "rl_policy", per_seed, {"runs": runs, "frames": F, "targets": seq.tolist()}
+    )
+
+
+# --------------------------------------------------------------------------- speed
+
+
+def speed(start, args) -> None:
+    torch.set_num_threads(1)
+    for name in ("rl_target", "rl_joystick", "rl_path"):
+        pol = load_steering(getattr(args, name))
+        for label, zero in ((f"{name}+amdm", False), ("amdm_alone", True)):
+            times = []
+            for rep in range(args.repeats + 1):
+                t0 = time.perf_counter()
+                steer(pol, args.speed_frames, 1, starts=start[None], seed=rep, zero_policy=zero)
+                if rep:  # the first run warms up
+                    times.append((time.perf_counter() - t0) / args.speed_frames * 1000)
+            emit({"bench": "speed", "method": label, "batch": 1, "threads": 1,
+                  "ms_per_frame": mean_ci(times), "fps": round(1000 / float(np.mean(times)), 1)},
+                 OUT)  # fmt: skip
+
+
+def main() -> None:
+    global OUT, CURVES
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--only", nargs="+", default=["target", "joystick", "path", "diversity", "speed"],
+                   choices=["curves", "target", "joystick", "path", "diversity", "speed"])  # fmt: skip
+    p.add_argument("--rl-target", default="rl_target")
+    p.add_argument("--rl-joystick", default="rl_joystick")
+    p.add_argument("--rl-path", default="rl_path")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--targets", type=int, default=16)
+    p.add_argument("--max-frames", type=int, default=450)
+    p.add_argument("--pool", type=int, default=32, help="beam search candidates (chapter 5)")
+    p.add_argument("--commands", type=int, default=8)
+    p.add_argument("--paths", type=int, default=8)
+    p.add_argument("--diversity-runs", type=int, default=8)
+    p.add_argument("--budget", type=int, default=400_000, help="environment steps per curve")
+    p.add_argument("--speed-frames", type=int, default=60)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", default=str(RESULTS / "rl_steering.jsonl"))
+    p.add_argument("--curves", default=str(RESULTS / "rl_curves.jsonl"))
+    args = p.parse_args()
+    OUT, CURVES = args.out, args.curves
+    torch.set_num_threads(args.threads)
+    emit({"bench": "config", **vars(args), **hardware()}, OUT)
+    amdm_ckpt = minimdm.pretrained("amdm")
+    amdm = C.as_control_model(amdm_ckpt)
+    start = evaluation.initial_state(amdm_ckpt, *START).features  # (D,)
+    test = evaluation.checkpoint_clips(amdm_ckpt, split="test")
+    skeleton = test[START[0]].skeleton
+    walks = [c for c in test if c.labels["content"] == "walk"]
+    walk_pos = torch.cat([torch.as_tensor(c.positions) for c in walks])
+    root_speed = torch.cat([torch.as_tensor(c.positions[1:, 0, :2] - c.positions[:-1, 0, :2])
+                            for c in walks]).norm(dim=-1) * amdm.fps  # fmt: skip
+    ctx = {
+        "skeleton": skeleton,
+        "offsets": metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices),
+        "walk_speed": float(root_speed.median()),
+    }
+    if "curves" in args.only:
+        curves(args)
+    if "target" in args.only:
+        target(amdm, start, ctx, args)
+    if "joystick" in args.only:
+        joystick(start, ctx, args)
+    if "path" in args.only:
+        path(amdm, start, ctx, args)
+    if "diversity" in args.only:
+        diversity(start, args)
+    if "speed" in args.only:
+        speed(start, args)
+
+
+OUT = CURVES = None
+
+if __name__ == "__main__":
+    main()
