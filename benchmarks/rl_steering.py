@@ -55,8 +55,11 @@ def mean_ci(values) -> dict:
         return {"mean": None, "ci95": None, "n": 0}
     t = {1: float("nan"), 2: 12.71, 3: 4.30, 4: 3.18, 5: 2.78}.get(len(v), 2.0)
     half = t * v.std(ddof=1) / math.sqrt(len(v)) if len(v) > 1 else None
-    return {"mean": round(float(v.mean()), 4), "ci95": None if half is None else round(half, 4),
-            "n": int(len(v))}  # fmt: skip
+    return {
+        "mean": round(float(v.mean()), 4),
+        "ci95": None if half is None else round(half, 4),
+        "n": int(len(v)),
+    }
 
 
 def backward_share(features: torch.Tensor, fps: float, threshold: float = 0.1) -> float:
@@ -73,14 +76,19 @@ def quality(pos: torch.Tensor, feats: torch.Tensor, lengths, skeleton, offsets, 
     for i, n in enumerate(lengths):
         n = max(int(n), 4)
         p = pos[i : i + 1, :n]
-        rows.append([
-            metrics.foot_sliding(p, skeleton.foot_indices, foot_offset=offsets),
-            metrics.bone_length_error(p, skeleton.parents, ref),
-            metrics.joint_acceleration(p),
-            backward_share(feats[i, :n], fps),
-        ])  # fmt: skip
-    return dict(zip(("FS", "Bone.Err", "Jnt.Accel", "backward"), np.mean(rows, axis=0).tolist(),
-                    strict=True))  # fmt: skip
+        rows.append(
+            [
+                metrics.foot_sliding(p, skeleton.foot_indices, foot_offset=offsets),
+                metrics.bone_length_error(p, skeleton.parents, ref),
+                metrics.joint_acceleration(p),
+                backward_share(feats[i, :n], fps),
+            ]
+        )
+    return dict(
+        zip(
+            ("FS", "Bone.Err", "Jnt.Accel", "backward"), np.mean(rows, axis=0).tolist(), strict=True
+        )
+    )
 
 
 def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None = None) -> None:
@@ -110,14 +118,20 @@ def curves(args) -> None:
             r = train_policy(cfg, out, progress=False, num_threads=args.threads)
             for row in r.history:
                 emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)
-            tail = [h["return_mean"] for h in r.history[-max(1, len(r.history) // 5) :]
-                    if h["return_mean"] is not None]  # fmt: skip
-            finals.append({
-                "final_return": float(np.mean(tail)) if tail else float("nan"),
-                "final_reward_per_frame": float(np.mean([h["reward_mean"] for h in
-                                                         r.history[-len(r.history) // 5 :]])),
-                "seconds": r.seconds,
-            })  # fmt: skip
+            tail = [
+                h["return_mean"]
+                for h in r.history[-max(1, len(r.history) // 5) :]
+                if h["return_mean"] is not None
+            ]
+            finals.append(
+                {
+                    "final_return": float(np.mean(tail)) if tail else float("nan"),
+                    "final_reward_per_frame": float(
+                        np.mean([h["reward_mean"] for h in r.history[-len(r.history) // 5 :]])
+                    ),
+                    "seconds": r.seconds,
+                }
+            )
         summarize("curves", name, finals, {"budget": args.budget, "task": "target"})
 
 
@@ -148,16 +162,24 @@ def target(amdm, start, ctx, args) -> None:
     res = {"rl_policy": [], "beam_search": [], "inpaint_line": []}
     for seed in range(args.seeds):
         t0 = time.perf_counter()
-        m = steer(pol, F, N, starts=start[None],
-                  setup=lambda env: env.task.set_targets(goals), seed=seed)  # fmt: skip
+        m = steer(
+            pol, F, N, starts=start[None], setup=lambda env: env.task.set_targets(goals), seed=seed
+        )
         sec = time.perf_counter() - t0
         done = first_hit(m.info["hit"])
         res["rl_policy"].append(_target_row(m.positions, m.features, done, F, ctx, sec, fps))
 
         g = torch.Generator().manual_seed(seed)
         t0 = time.perf_counter()
-        b = C.beam_search(amdm, start.expand(N, -1), C.target_score(goals.double()), F,
-                          pool=args.pool, generator=g, stop_fn=C.reached(goals.double()))  # fmt: skip
+        b = C.beam_search(
+            amdm,
+            start.expand(N, -1),
+            C.target_score(goals.double()),
+            F,
+            pool=args.pool,
+            generator=g,
+            stop_fn=C.reached(goals.double()),
+        )
         sec = time.perf_counter() - t0
         done = b.info["done_at"]
         res["beam_search"].append(_target_row(b.positions, b.features, done, F, ctx, sec, fps))
@@ -173,17 +195,35 @@ def target(amdm, start, ctx, args) -> None:
             mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
             d = (mi.root_xy[-1] - goals[i]).norm()
             n = mi.n_frames if d < 0.15 else -1
-            rows.append(_target_row(mi.positions[None], mi.features[None], torch.tensor([n]),
-                                    mi.n_frames, ctx, 0.0, fps))  # fmt: skip
+            rows.append(
+                _target_row(
+                    mi.positions[None],
+                    mi.features[None],
+                    torch.tensor([n]),
+                    mi.n_frames,
+                    ctx,
+                    0.0,
+                    fps,
+                )
+            )
         sec = time.perf_counter() - t0
         avg = {k: float(np.nanmean([r[k] for r in rows])) for k in rows[0]}
         avg["success_rate"] = float(np.mean([r["success_rate"] for r in rows]))
         avg["seconds"] = sec
         res["inpaint_line"].append(avg)
     for name, per_seed in res.items():
-        summarize("target", name, per_seed,
-                  {"targets": N, "max_frames": F, "radius_m": 0.15, "pool": args.pool,
-                   "walk_speed_mps": round(walk_speed, 2)})  # fmt: skip
+        summarize(
+            "target",
+            name,
+            per_seed,
+            {
+                "targets": N,
+                "max_frames": F,
+                "radius_m": 0.15,
+                "pool": args.pool,
+                "walk_speed_mps": round(walk_speed, 2),
+            },
+        )
 
 
 def _target_row(pos, feats, done, F, ctx, seconds, fps) -> dict:
@@ -221,20 +261,31 @@ def joystick(start, ctx, args) -> None:
     res = {"rl_policy": [], "unsteered": []}
     for seed in range(args.seeds):
         for name, zero in (("rl_policy", False), ("unsteered", True)):
-            m = steer(pol, F, N, starts=start[None], setup=lambda env: env.task.preset(heading, speed),
-                      seed=seed, zero_policy=zero)  # fmt: skip
+            m = steer(
+                pol,
+                F,
+                N,
+                starts=start[None],
+                setup=lambda env: env.task.preset(heading, speed),
+                seed=seed,
+                zero_policy=zero,
+            )
             he = m.info["heading_error"].abs() * 180 / math.pi
             se = m.info["speed_error"].abs()
             since = torch.arange(F) % 120  # frames since the last command change
             settled = since >= 60
-            res[name].append({
-                "heading_error_deg": float(he.mean()),
-                "heading_error_settled_deg": float(he[:, settled].mean()),
-                "speed_error_mps": float(se.mean()),
-                "speed_error_settled_mps": float(se[:, settled].mean()),
-                "reward_eq8": float(m.reward.mean()),
-                **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
-            })  # fmt: skip
+            res[name].append(
+                {
+                    "heading_error_deg": float(he.mean()),
+                    "heading_error_settled_deg": float(he[:, settled].mean()),
+                    "speed_error_mps": float(se.mean()),
+                    "speed_error_settled_mps": float(se[:, settled].mean()),
+                    "reward_eq8": float(m.reward.mean()),
+                    **quality(
+                        m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps
+                    ),
+                }
+            )
     for name, per_seed in res.items():
         summarize(
             "joystick", name, per_seed, {"commands": N, "frames": F, "speed_range": [0.5, 2.5]}
@@ -253,24 +304,37 @@ def path(amdm, start, ctx, args) -> None:
     fps = pol.cm.fps
     res = {"rl_policy": [], "inpaint_path": []}
     for seed in range(args.seeds):
-        m = steer(pol, F, N, starts=start[None], setup=lambda env: env.task.set_paths(paths),
-                  seed=seed)  # fmt: skip
+        m = steer(
+            pol, F, N, starts=start[None], setup=lambda env: env.task.set_paths(paths), seed=seed
+        )
         dev = m.info["deviation"]
-        res["rl_policy"].append({
-            "deviation_mean_m": float(dev.mean()), "deviation_max_m": float(dev.max(1).values.mean()),
-            **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
-        })  # fmt: skip
+        res["rl_policy"].append(
+            {
+                "deviation_mean_m": float(dev.mean()),
+                "deviation_max_m": float(dev.max(1).values.mean()),
+                **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
+            }
+        )
         rows = []
         for i in range(N):
             con = C.root_path_targets(amdm.layout, paths[i].double())
             g = torch.Generator().manual_seed(seed * 1000 + i)
             mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
             d = (mi.root_xy - paths[i, 1:]).norm(dim=-1)
-            rows.append({
-                "deviation_mean_m": float(d.mean()), "deviation_max_m": float(d.max()),
-                **quality(mi.positions[None], mi.features[None], [F], ctx["skeleton"],
-                          ctx["offsets"], fps),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "deviation_mean_m": float(d.mean()),
+                    "deviation_max_m": float(d.max()),
+                    **quality(
+                        mi.positions[None],
+                        mi.features[None],
+                        [F],
+                        ctx["skeleton"],
+                        ctx["offsets"],
+                        fps,
+                    ),
+                }
+            )
         res["inpaint_path"].append({k: float(np.mean([r[k] for r in rows])) for k in rows[0]})
     for name, per_seed in res.items():
         summarize("path", name, per_seed, {"paths": N, "frames": F})
@@ -286,15 +350,23 @@ def diversity(start, args) -> None:
     per_seed = []
     for seed in range(args.seeds):
         # one batch of runs from the same start; the model's noise makes them differ
-        m = steer(pol, F, runs, starts=start[None],
-                  setup=lambda env: env.task.set_targets(seq.expand(runs, -1, -1)), seed=seed)  # fmt: skip
+        m = steer(
+            pol,
+            F,
+            runs,
+            starts=start[None],
+            setup=lambda env: env.task.set_targets(seq.expand(runs, -1, -1)),
+            seed=seed,
+        )
         xy = m.root_xy  # (R, F, 2)
         pair = (xy[:, None] - xy[None]).norm(dim=-1).mean(-1)  # (R, R)
         reached = m.info["hit"].sum(1).float()
-        per_seed.append({
-            "pairwise_path_distance_m": float(pair.sum() / (runs * (runs - 1))),
-            "targets_reached_mean": float(reached.clamp(max=len(seq)).mean()),
-        })  # fmt: skip
+        per_seed.append(
+            {
+                "pairwise_path_distance_m": float(pair.sum() / (runs * (runs - 1))),
+                "targets_reached_mean": float(reached.clamp(max=len(seq)).mean()),
+            }
+        )
     summarize(
         "diversity", "rl_policy", per_seed, {"runs": runs, "frames": F, "targets": seq.tolist()}
     )
@@ -314,16 +386,28 @@ def speed(start, args) -> None:
                 steer(pol, args.speed_frames, 1, starts=start[None], seed=rep, zero_policy=zero)
                 if rep:  # the first run warms up
                     times.append((time.perf_counter() - t0) / args.speed_frames * 1000)
-            emit({"bench": "speed", "method": label, "batch": 1, "threads": 1,
-                  "ms_per_frame": mean_ci(times), "fps": round(1000 / float(np.mean(times)), 1)},
-                 OUT)  # fmt: skip
+            emit(
+                {
+                    "bench": "speed",
+                    "method": label,
+                    "batch": 1,
+                    "threads": 1,
+                    "ms_per_frame": mean_ci(times),
+                    "fps": round(1000 / float(np.mean(times)), 1),
+                },
+                OUT,
+            )
 
 
 def main() -> None:
     global OUT, CURVES
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--only", nargs="+", default=["target", "joystick", "path", "diversity", "speed"],
-                   choices=["curves", "target", "joystick", "path", "diversity", "speed"])  # fmt: skip
+    p.add_argument(
+        "--only",
+        nargs="+",
+        default=["target", "joystick", "path", "diversity", "speed"],
+        choices=["curves", "target", "joystick", "path", "diversity", "speed"],
+    )
     p.add_argument("--rl-target", default="rl_target")
     p.add_argument("--rl-joystick", default="rl_joystick")
     p.add_argument("--rl-path", default="rl_path")
@@ -351,8 +435,12 @@ def main() -> None:
     skeleton = test[START[0]].skeleton
     walks = [c for c in test if c.labels["content"] == "walk"]
     walk_pos = torch.cat([torch.as_tensor(c.positions) for c in walks])
-    root_speed = torch.cat([torch.as_tensor(c.positions[1:, 0, :2] - c.positions[:-1, 0, :2])
-                            for c in walks]).norm(dim=-1) * amdm.fps  # fmt: skip
+    root_speed = (
+        torch.cat(
+            [torch.as_tensor(c.positions[1:, 0, :2] - c.positions[:-1, 0, :2]) for c in walks]
+        ).norm(dim=-1)
+        * amdm.fps
+    )
     ctx = {
         "skeleton": skeleton,
         "offsets": metrics.foot_contact_offsets(walk_pos, skeleton.foot_indices),

@@ -20,6 +20,7 @@ from minimdm.aamdm import model as _aamdm_model  # noqa: F401  kind "ddgan"
 from minimdm.aamdm import motion as _aamdm_motion  # noqa: F401  kind "aamdm_motion"
 from minimdm.aamdm import nets as _aamdm_nets  # noqa: F401  kind "ddgan_generator"
 from minimdm.amdm import models as _amdm_models  # noqa: F401  kinds "amdm", "mse", "mvae"
+from minimdm.rl import nets as _rl_nets  # noqa: F401  kind "policy"
 
 __all__ = ["__version__", "pretrained", "rollout", "CHECKPOINT_DIR"]
 

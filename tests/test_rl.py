@@ -200,6 +200,17 @@ def test_joystick_redraws_direction_every_120_and_speed_every_240_frames():
     assert speed_changes == [240, 480]
 
 
+def test_joystick_pays_for_velocity_along_the_command_not_for_walking_backwards():
+    task = JoystickTask()
+    task.setup(2, torch.Generator())
+    task.command(torch.tensor([0.0, 0.0]), torch.tensor([1.5, 1.5]))
+    ch = _chars([[0.0, 0.0]] * 2)  # both face the command (+x)
+    ch.velocity = torch.tensor([[1.5, 0.0], [-1.5, 0.0]])  # forwards, backwards
+    reward, _, info = task.step(ch, ch.xy)
+    assert reward[0] == pytest.approx(1.0) and reward[1] == pytest.approx(math.exp(-3.0))
+    assert torch.allclose(info["speed_error"], torch.tensor([0.0, -3.0]))
+
+
 def test_preset_joystick_commands_drive_every_frame():
     task = JoystickTask()
     task.setup(2, torch.Generator())

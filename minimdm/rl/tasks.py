@@ -11,6 +11,7 @@ All tensors are batched over the N environments; ``idx`` selects the environment
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -70,8 +71,8 @@ def joystick_reward(heading: Tensor, speed: Tensor, goal_heading: Tensor, goal_s
     """A-MDM eq. 8: :math:`r = e^{\\cos(d_r - d_r^g) - 1} \\cdot e^{-|d_v - d_v^g|}`.
 
     ``heading`` :math:`d_r` and ``goal_heading`` in radians, ``speed`` :math:`d_v` and
-    ``goal_speed`` in m/s. 1 when both match; the two terms multiply, so that neither can be
-    traded for the other.
+    ``goal_speed`` in m/s (:class:`JoystickTask` passes the velocity along the command). 1 when
+    both match; the two terms multiply, so that neither can be traded for the other.
     """
     return torch.exp(torch.cos(heading - goal_heading) - 1) * torch.exp(-(speed - goal_speed).abs())
 
@@ -105,8 +106,9 @@ class Task:
         raise NotImplementedError
 
     def to_dict(self) -> dict[str, Any]:
-        d = {k: v for k, v in vars(self).items() if k not in ("n", "generator", "name", "obs_dim")}
-        return {"name": self.name, **{k: v for k, v in d.items() if not isinstance(v, Tensor)}}
+        """The task's name and options (its init fields), as stored in a policy checkpoint."""
+        opts = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
+        return {"name": self.name, **opts}
 
     def _uniform(self, n: int, lo: float, hi: float) -> Tensor:
         return lo + (hi - lo) * torch.rand(n, generator=self.generator)
@@ -228,8 +230,13 @@ class JoystickTask(Task):
     ``corpus_speed`` (what the training motion holds) are accepted and counted in
     ``info["out_of_range"]``.
 
+    The speed :math:`d_v` of eq. 8 is the root's planar velocity *along the commanded
+    direction* (m/s, negative when moving away from it): with the speed's magnitude, a first
+    policy faced the commanded way and walked backwards, which eq. 8 with a magnitude pays in
+    full.
+
     Observation: the commanded direction relative to the heading (cos, sin), the commanded
-    speed and its difference from the current speed (both / 3 m/s) -- 4 numbers.
+    speed and its difference from the current velocity along it (both / 3 m/s) -- 4 numbers.
     """
 
     max_frames: int = 400
@@ -300,18 +307,23 @@ class JoystickTask(Task):
             i = new_speed.nonzero()[:, 0]
             self.command(self.goal_heading[i], self._uniform(len(i), *self.speed_range), i)
 
+    def along(self, ch: Characters) -> Tensor:
+        """(N,) the root's planar velocity along the commanded direction, m/s."""
+        u = torch.stack([torch.cos(self.goal_heading), torch.sin(self.goal_heading)], -1)
+        return (ch.velocity * u).sum(-1)
+
     def observe(self, ch):
         d = self.goal_heading - ch.heading
-        return torch.stack(
-            [torch.cos(d), torch.sin(d), self.goal_speed / 3, (self.goal_speed - ch.speed) / 3], -1
-        )
+        gap = (self.goal_speed - self.along(ch)) / 3
+        return torch.stack([torch.cos(d), torch.sin(d), self.goal_speed / 3, gap], -1)
 
     def step(self, ch, prev_xy):
-        reward = joystick_reward(ch.heading, ch.speed, self.goal_heading, self.goal_speed)
+        v = self.along(ch)
+        reward = joystick_reward(ch.heading, v, self.goal_heading, self.goal_speed)
         info = {
             "heading_error": torch.remainder(ch.heading - self.goal_heading + math.pi, 2 * math.pi)
             - math.pi,
-            "speed_error": ch.speed - self.goal_speed,
+            "speed_error": v - self.goal_speed,
             "out_of_range": self.out_of_range.clone(),
         }
         self._redraw(ch)
