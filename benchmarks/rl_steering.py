@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -114,7 +116,7 @@ def curves(args) -> None:
         finals = []
         for seed in range(args.seeds):
             cfg = dataclasses.replace(base_cfg, total_steps=args.budget, seed=seed, **change)
-            out = RESULTS / "rl_curve_runs" / f"{name}_s{seed}"
+            out = Path(tempfile.mkdtemp(prefix=f"rl_curve_{name}_s{seed}_"))  # not kept
             r = train_policy(cfg, out, progress=False, num_threads=args.threads)
             for row in r.history:
                 emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)

@@ -57,6 +57,7 @@ def _make_hint(name: str) -> str:
     if not config.exists():
         return "Each shipped checkpoint's metadata names the command that made it."
     trainer = "python -m minimdm.aamdm train" if name.startswith("aamdm") else "minimdm train"
+    trainer = "minimdm rl" if name.startswith("rl_") else trainer
     return f"Make it with: {trainer} configs/{name}.yaml"
 
 

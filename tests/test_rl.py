@@ -397,3 +397,14 @@ def test_a_tied_residual_is_the_same_vector_at_every_chosen_level_weighted_by_w(
     for t, w in zip((9, 7, 5), (3.0, 2.0, 1.0), strict=True):
         assert torch.allclose(added[t], torch.tensor([[w, 0, 0, 0, -2 * w]]))
     assert all(torch.equal(added[t], x) for t in (8, 6, 4, 3, 2, 1, 0))
+
+
+@pytest.mark.parametrize("name", ["rl_target", "rl_joystick", "rl_path", "rl_target_mvae"])
+def test_shipped_policies_load_with_their_base_model_and_record_their_command(name):
+    s = load_steering(name)
+    meta = s.checkpoint.metadata
+    assert meta["command"].startswith(f"minimdm rl configs/{name}.yaml")
+    assert meta["train_seconds"] < 30 * 60  # the book's limit for one training command
+    assert s.checkpoint.paths.weights.stat().st_size < 5 * 2**20
+    obs = torch.zeros(3, s.policy.obs_dim)
+    assert s.policy.act(obs).shape == (3, s.steerer.action_dim)
