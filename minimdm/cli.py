@@ -45,9 +45,20 @@ def _overrides(pairs: list[str]) -> dict:
     return out
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
+def _recorded_command(verb: str, args: argparse.Namespace, default_threads: int) -> str:
+    """The command line a checkpoint records: ``minimdm VERB CONFIG [--set ...] [--out ...]``."""
     import shlex
 
+    command = ["minimdm", verb, Path(args.config).as_posix()]
+    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
+    if args.out:
+        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
+    if args.threads != default_threads:
+        command.append(f"--threads {args.threads}")
+    return " ".join(command)
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
     from minimdm.amdm.train import load_config, train_amdm
     from minimdm.config import with_changes
 
@@ -59,19 +70,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
         changes["device"] = args.device
     config = with_changes(config, changes, where="--set")
     out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    command = ["minimdm", "train", Path(args.config).as_posix()]
-    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
-    if args.out:
-        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
-    if args.threads != 1:
-        command.append(f"--threads {args.threads}")
     result = train_amdm(
         config,
         out,
         resume=not args.restart,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": " ".join(command)},
+        metadata={"command": _recorded_command("train", args, 1)},
     )
     summary = {
         "checkpoint": str(result.checkpoint.paths.weights),
@@ -88,25 +93,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_rl(args: argparse.Namespace) -> int:
-    import shlex
-
     from minimdm.config import with_changes
     from minimdm.rl.train import load_config, train_policy
 
     config = with_changes(load_config(args.config), _overrides(args.set or []), where="--set")
     out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    command = ["minimdm", "rl", Path(args.config).as_posix()]
-    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
-    if args.out:
-        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
-    if args.threads != 2:
-        command.append(f"--threads {args.threads}")
     result = train_policy(
         config,
         out,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": " ".join(command)},
+        metadata={"command": _recorded_command("rl", args, 2)},
     )
     summary = {
         "checkpoint": str(result.checkpoint.paths.weights),
