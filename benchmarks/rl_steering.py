@@ -113,25 +113,37 @@ def curves(args) -> None:
     import dataclasses
 
     for name, change in runs.items():
+        if args.curve and name not in args.curve:
+            continue
         finals = []
         for seed in range(args.seeds):
             cfg = dataclasses.replace(base_cfg, total_steps=args.budget, seed=seed, **change)
             out = Path(tempfile.mkdtemp(prefix=f"rl_curve_{name}_s{seed}_"))  # not kept
-            r = train_policy(cfg, out, progress=False, num_threads=args.threads)
+            try:
+                r = train_policy(cfg, out, progress=False, num_threads=args.threads)
+            except ValueError as e:  # PPO diverged: SB3's Gaussian got a NaN mean
+                emit({"curve": name, "seed": seed, "diverged": str(e).splitlines()[0]}, CURVES)
+                finals.append(
+                    {
+                        "final_return": float("nan"),
+                        "final_reward_per_frame": float("nan"),
+                        "seconds": float("nan"),
+                        "diverged": 1.0,
+                    }
+                )
+                continue
             for row in r.history:
                 emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)
-            tail = [
-                h["return_mean"]
-                for h in r.history[-max(1, len(r.history) // 5) :]
-                if h["return_mean"] is not None
-            ]
+            n = max(1, len(r.history) // 5)
+            tail = [h["return_mean"] for h in r.history[-n:] if h["return_mean"] is not None]
             finals.append(
                 {
                     "final_return": float(np.mean(tail)) if tail else float("nan"),
                     "final_reward_per_frame": float(
-                        np.mean([h["reward_mean"] for h in r.history[-len(r.history) // 5 :]])
+                        np.mean([h["reward_mean"] for h in r.history[-n:]])
                     ),
                     "seconds": r.seconds,
+                    "diverged": 0.0,
                 }
             )
         summarize("curves", name, finals, {"budget": args.budget, "task": "target"})
@@ -420,7 +432,8 @@ def main() -> None:
     p.add_argument("--commands", type=int, default=8)
     p.add_argument("--paths", type=int, default=8)
     p.add_argument("--diversity-runs", type=int, default=8)
-    p.add_argument("--budget", type=int, default=400_000, help="environment steps per curve")
+    p.add_argument("--budget", type=int, default=300_000, help="environment steps per curve")
+    p.add_argument("--curve", nargs="*", default=None, help="only these curves (default: all)")
     p.add_argument("--speed-frames", type=int, default=60)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=2)
