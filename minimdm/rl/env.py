@@ -28,7 +28,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
-from minimdm.amdm.models import MVAE, MLPDenoiser
+from minimdm.amdm.models import MVAE
 from minimdm.control.core import ControlModel, sample_frame
 from minimdm.diffusion import ddim_timesteps
 
@@ -135,20 +135,6 @@ def make_steerer(cm: ControlModel, spec: dict[str, Any]) -> Steerer:
     if kind == "latent":
         return LatentSteerer(cm, spec.get("scale", 2.0))
     raise ValueError(f"steering kind must be 'residual' or 'latent', got {kind!r}")
-
-
-def default_steerer(cm: ControlModel, **options: Any) -> Steerer:
-    """The steerer for the model's kind: residuals for A-MDM, the latent for an MVAE."""
-    if isinstance(cm.net, MLPDenoiser):
-        T = cm.schedule.T
-        sched = ResidualSchedule.top(
-            T,
-            options.get("n_levels", T // 2),
-            options.get("anneal", "linear"),
-            options.get("scale", 1.0),
-        )
-        return ResidualSteerer(cm, sched, options.get("features", "all"))
-    return LatentSteerer(cm, options.get("scale", 2.0))
 
 
 class SteeringVecEnv(VectorEnv):
