@@ -90,6 +90,8 @@ class RLConfig:
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
+    target_kl: float | None = None
+    """PPO: stop a rollout's epochs early when the approximate KL exceeds this (SB3's option)."""
     log_std_init: float = -0.7
     """Initial log std of the Gaussian policy (the official code fixes std 0.5: log 0.5 = -0.69)."""
     net_arch: list[int] = field(default_factory=lambda: [256, 256])
@@ -344,6 +346,7 @@ def train_policy(
         ent_coef=config.ent_coef,
         vf_coef=config.vf_coef,
         max_grad_norm=config.max_grad_norm,
+        target_kl=config.target_kl,
         policy_kwargs={
             "net_arch": {"pi": list(config.net_arch), "vf": list(config.net_arch)},
             "log_std_init": config.log_std_init,
