@@ -12,6 +12,8 @@ import minimdm
 from minimdm.checkpoint import CheckpointMismatchError
 from minimdm.control.core import as_control_model
 from minimdm.diffusion import DDIMStep, NoiseSchedule, reverse_chain
+from minimdm.motion import metrics
+from minimdm.motion.features import decode
 from minimdm.rl import (
     Characters,
     JoystickTask,
@@ -311,6 +313,39 @@ def test_env_refuses_actions_of_the_wrong_shape_or_not_finite(base, starts):
     bad[1, 4] = np.inf
     with pytest.raises(ValueError, match="environment 1 holds NaN/Inf"):
         env.step(bad)
+
+
+def test_motion_penalty_is_the_libraries_bone_error_and_foot_sliding_of_each_new_frame(
+    base, starts
+):
+    """The env's per-frame quality equals metrics.bone_length_error / foot_sliding on the
+    decoded rollout, and the reward pays ``motion_penalty`` per cm of their sum."""
+    cfg = RLConfig(task="joystick", num_envs=2, batch_size=64, n_levels=4, tied=True)
+    plain = build_env(cfg, base)
+    env = build_env(RLConfig(**{**cfg.__dict__, "motion_penalty": 0.5}), base)
+    g = np.random.default_rng(0)
+    for e in (plain, env):
+        e.reset(seed=3)
+    frames, infos = [], []
+    for _ in range(6):
+        a = (0.5 * g.standard_normal((2, env.single_action_space.shape[0]))).astype(np.float32)
+        _, r0, *_ = plain.step(a)
+        _, r, _, _, info = env.step(a)
+        frames.append(env.cm.denormalize(env.x).double())
+        infos.append(info)
+        assert np.allclose(r, r0 - 0.5 * (info["bone_cm"] + info["slide_cm"]), atol=1e-5)
+    sk = env.cm.skeleton
+    origin = {"xy": torch.zeros(2, 2), "heading": torch.zeros(2)}  # where the env starts
+    pos = decode(torch.stack(frames, 1), origin)  # (2, 6, J, 3)
+    ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
+    z0 = env.quality.z0.double()
+    for i in range(2):
+        for k in range(1, 6):
+            bone = metrics.bone_length_error(pos[i, k : k + 1], sk.parents, ref)
+            slide = metrics.foot_sliding(pos[i, k - 1 : k + 1], sk.foot_indices, foot_offset=z0)
+            assert infos[k]["bone_cm"][i] == pytest.approx(bone, rel=1e-4, abs=1e-4)
+            assert infos[k]["slide_cm"][i] == pytest.approx(slide, rel=1e-4, abs=1e-4)
+    assert np.mean([i["bone_cm"] for i in infos]) > 1.0  # pushed frames leave the data
 
 
 def test_latent_steerer_decodes_the_action_as_mvae_latent():

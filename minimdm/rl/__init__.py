@@ -4,7 +4,8 @@
   (eq. 7) and its schedule (which steps, which features, the annealing of :math:`w^t`);
 * :mod:`~minimdm.rl.tasks`: target reaching, joystick control (eq. 8), path following (§6);
 * :mod:`~minimdm.rl.env`: the gymnasium vector environment (one batched model call steps every
-  character), the residual and MVAE-latent steerers, a single-character view;
+  character), the residual and MVAE-latent steerers, the per-frame motion penalty (bone length
+  error + foot sliding), a single-character view;
 * :mod:`~minimdm.rl.train`: stable-baselines3 PPO through a ``VecEnv`` adapter (eq. 6);
 * :mod:`~minimdm.rl.policy`: policies stored as safetensors + JSON, loaded with their base model.
 """

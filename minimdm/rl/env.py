@@ -31,6 +31,7 @@ from torch import Tensor
 from minimdm.amdm.models import MVAE
 from minimdm.control.core import ControlModel, sample_frame
 from minimdm.diffusion import ddim_timesteps
+from minimdm.motion import metrics
 
 from .residual import ResidualSchedule, feature_indices, residual_hook
 from .tasks import Characters, Task
@@ -137,6 +138,49 @@ def make_steerer(cm: ControlModel, spec: dict[str, Any]) -> Steerer:
     raise ValueError(f"steering kind must be 'residual' or 'latent', got {kind!r}")
 
 
+class _FrameQuality:
+    """Bone length error and foot sliding of each character's newest frame, in cm.
+
+    The same measures as :func:`minimdm.motion.metrics.bone_length_error` and
+    :func:`~minimdm.motion.metrics.foot_sliding`, one frame at a time: the feet's world positions
+    of the previous frame are kept per character. Foot contact heights come from the start frames
+    (their 5 % quantile, as :func:`~minimdm.motion.metrics.foot_contact_offsets`).
+    """
+
+    def __init__(self, cm: ControlModel, starts: Tensor, n: int) -> None:
+        sk, lay = cm.skeleton, cm.layout
+        self.parents = torch.as_tensor(sk.parents)
+        self.child = (self.parents >= 0).nonzero()[:, 0]
+        self.ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents).float()
+        self.feet = list(sk.foot_indices)
+        self.pos_sl, self.J = lay.joint_pos, lay.n_joints
+        z = self._local(starts.float().cpu())[:, self.feet, 2]
+        self.z0 = torch.quantile(z, 0.05, dim=0)
+        self.prev = torch.zeros(n, len(self.feet), 2)
+
+    def _local(self, feats: Tensor) -> Tensor:
+        return feats[:, self.pos_sl].unflatten(-1, (self.J, 3))
+
+    def _feet_world(self, p: Tensor, xy: Tensor, heading: Tensor) -> Tensor:
+        c, s = torch.cos(heading)[:, None], torch.sin(heading)[:, None]
+        fx, fy = p[:, self.feet, 0], p[:, self.feet, 1]
+        return torch.stack([c * fx - s * fy, s * fx + c * fy], -1) + xy[:, None, :]
+
+    def reset(self, idx: Tensor, feats: Tensor, xy: Tensor, heading: Tensor) -> None:
+        self.prev[idx] = self._feet_world(self._local(feats), xy, heading)
+
+    def __call__(self, feats: Tensor, xy: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
+        p = self._local(feats)
+        bones = (p[:, self.child] - p[:, self.parents[self.child]]).norm(dim=-1)
+        bone = (bones - self.ref).abs().mean(1) * 100
+        feet = self._feet_world(p, xy, heading)
+        h = p[:, self.feet, 2] - self.z0
+        weight = 2 - 2 ** (h / 0.025).clamp(0, 1)
+        slide = ((feet - self.prev).norm(dim=-1) * weight).mean(1) * 100
+        self.prev = feet
+        return bone, slide
+
+
 class SteeringVecEnv(VectorEnv):
     """N characters driven by one batched model call per step (see the module docstring).
 
@@ -149,6 +193,10 @@ class SteeringVecEnv(VectorEnv):
         seed: seeds the generator of starts, goals and the model's noise.
         action_penalty: subtracted from the reward times the mean squared action: the policy
             pays for every push away from what the base model would do by itself.
+        motion_penalty: subtracted from the reward per cm of the new frame's bone length
+            error plus foot sliding (the quality measures of A-MDM eq. 11 and §7, computed on
+            the one frame): the policy pays for frames that leave the data. Needs the base
+            model's skeleton (checkpoints carry it).
 
     Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's.
     Action: (N, A) float32 in [-1, 1].
@@ -165,6 +213,7 @@ class SteeringVecEnv(VectorEnv):
         num_envs: int = 64,
         seed: int = 0,
         action_penalty: float = 0.0,
+        motion_penalty: float = 0.0,
     ) -> None:
         starts = torch.as_tensor(starts, dtype=torch.float32)
         D = cm.dim
@@ -174,6 +223,10 @@ class SteeringVecEnv(VectorEnv):
             )
         self.cm, self.steerer, self.task = cm, steerer, task
         self.action_penalty = float(action_penalty)
+        self.motion_penalty = float(motion_penalty)
+        measurable = cm.skeleton is not None and cm.layout is not None
+        if self.motion_penalty and not measurable:
+            raise ValueError("motion_penalty needs a base model with a skeleton and a layout")
         self.starts = cm.normalize(starts.to(cm.device))
         self.num_envs = int(num_envs)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
@@ -189,6 +242,7 @@ class SteeringVecEnv(VectorEnv):
         self._rot_sl = (
             (cm.layout.root_vel, cm.layout.yaw_rate) if cm.layout else (slice(0, 2), slice(2, 3))
         )
+        self.quality = _FrameQuality(cm, starts, self.num_envs) if measurable else None
 
     # -- state --------------------------------------------------------------------------
 
@@ -201,11 +255,16 @@ class SteeringVecEnv(VectorEnv):
         self.ch.frame[idx] = 0
         self.returns[idx] = 0
         self.task.reset(idx, self.ch)
+        if self.quality is not None:
+            self.quality.reset(idx, self._feats(self.x[idx]), self.ch.xy[idx], self.ch.heading[idx])
+
+    def _feats(self, x: Tensor) -> Tensor:
+        return self.cm.denormalize(x).float().cpu()
 
     def _root_motion(self, x: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
         """World velocity (M, 2) m/s and yaw rate (M,) of normalized frames x in heading frame
         ``heading`` + yaw rate (the frame's own heading)."""
-        feats = self.cm.denormalize(x).float().cpu()
+        feats = self._feats(x)
         vel, yaw = feats[:, self._rot_sl[0]], feats[:, self._rot_sl[1]][:, 0]
         h = heading + yaw
         c, s = torch.cos(h), torch.sin(h)
@@ -241,12 +300,25 @@ class SteeringVecEnv(VectorEnv):
         self.x = x
         return x, prev
 
+    def score(self, actions: Tensor, prev: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        """The task's reward for the frame just made, less the penalties: ``(reward (N,),
+        terminated (N,), info)``. The info has the task's own ``task_reward`` and, with the base
+        model's skeleton known, the frame's ``bone_cm`` and ``slide_cm`` (whatever the
+        penalties)."""
+        reward, terminated, info = self.task.step(self.ch, prev)
+        info = {**info, "task_reward": reward}
+        reward = reward - self.action_penalty * actions.pow(2).mean(1)
+        if self.quality is not None:
+            bone, slide = self.quality(self._feats(self.x), self.ch.xy, self.ch.heading)
+            reward = reward - self.motion_penalty * (bone + slide)
+            info = {**info, "bone_cm": bone, "slide_cm": slide}
+        return reward, terminated, info
+
     def step(self, actions):
         a = check_actions(actions, self.num_envs, self.single_action_space.shape[0])
         a = a.clamp(-1.0, 1.0)
         _, prev = self.advance(a)
-        reward, terminated, info = self.task.step(self.ch, prev)
-        reward = reward - self.action_penalty * a.pow(2).mean(1)
+        reward, terminated, info = self.score(a, prev)
         truncated = (self.ch.frame >= self.task.max_frames) & ~terminated
         self.returns += reward
         obs = self._obs()
@@ -278,8 +350,8 @@ class SteeringEnv(gym.Env):
 
     metadata = {"render_modes": []}
 
-    def __init__(self, cm, steerer, task, starts, seed: int = 0, action_penalty: float = 0.0):
-        self.vec = SteeringVecEnv(cm, steerer, task, starts, 1, seed, action_penalty)
+    def __init__(self, cm, steerer, task, starts, seed: int = 0, **penalties: float):
+        self.vec = SteeringVecEnv(cm, steerer, task, starts, 1, seed, **penalties)
         self.observation_space = self.vec.single_observation_space
         self.action_space = self.vec.single_action_space
 
@@ -292,8 +364,7 @@ class SteeringEnv(gym.Env):
         a = check_actions(np.asarray(action)[None], 1, self.action_space.shape[0]).clamp(-1, 1)
         v = self.vec
         _, prev = v.advance(a)
-        reward, terminated, info = v.task.step(v.ch, prev)
-        reward = reward - v.action_penalty * a.pow(2).mean(1)
+        reward, terminated, info = v.score(a, prev)
         truncated = bool(v.ch.frame[0] >= v.task.max_frames) and not bool(terminated[0])
         return (
             v._obs()[0],

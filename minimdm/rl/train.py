@@ -75,6 +75,9 @@ class RLConfig:
     """MVAE: the latent is ``latent_scale`` times the action."""
     action_penalty: float = 0.0
     """Reward minus this times the mean squared action (stay close to the base model)."""
+    motion_penalty: float = 0.0
+    """Reward minus this per cm of the frame's bone length error plus foot sliding (stay on
+    the data; see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
     num_envs: int = 64
     """Characters stepped together (one batched model call)."""
     total_steps: int = 1_000_000
@@ -165,7 +168,8 @@ def build_env(
         starts,
         num_envs or config.num_envs,
         config.seed if seed is None else seed,
-        config.action_penalty,
+        action_penalty=config.action_penalty,
+        motion_penalty=config.motion_penalty,
     )
 
 
@@ -177,6 +181,11 @@ def _sb3():
     from stable_baselines3.common.vec_env import VecEnv
 
     return VecEnv
+
+
+LOGGED_KEYS = ("task_reward", "bone_cm", "slide_cm")
+"""Per-frame values the environment reports (the task's reward before penalties, the motion's
+quality), logged per rollout as means per frame."""
 
 
 class SB3VecEnv(_sb3()):
@@ -194,8 +203,10 @@ class SB3VecEnv(_sb3()):
         self.finished: list[tuple[float, int]] = []
         """(return, length) of every episode finished since the last :meth:`drain`."""
         self.reward_sum, self.reward_count = 0.0, 0
-        """The task's rewards since the last :meth:`drain` (SB3's buffer adds bootstrapped
-        values to the rewards of time-limited steps, so it is not the task's reward)."""
+        """The rewards (penalties included) since the last :meth:`drain` (SB3's buffer adds
+        bootstrapped values to the rewards of time-limited steps, so it does not give them)."""
+        self.quality_sums: dict[str, float] = {}
+        """Sums of the frames' :data:`LOGGED_KEYS` since the last :meth:`drain`."""
 
     def reset(self):
         seed = self._seeds[0] if getattr(self, "_seeds", None) else None
@@ -211,6 +222,9 @@ class SB3VecEnv(_sb3()):
         obs, reward, terminated, truncated, info = self.env.step(self._actions)
         self.reward_sum += float(reward.sum())
         self.reward_count += len(reward)
+        for k in LOGGED_KEYS:
+            if k in info:
+                self.quality_sums[k] = self.quality_sums.get(k, 0.0) + float(info[k].sum())
         done = terminated | truncated
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         for i in np.flatnonzero(done):
@@ -223,12 +237,15 @@ class SB3VecEnv(_sb3()):
             self.finished.append((r, n))
         return obs, reward.astype(np.float32), done, infos
 
-    def drain(self) -> tuple[float, list[tuple[float, int]]]:
-        """The mean task reward per step and the finished episodes since the last call."""
-        mean = self.reward_sum / max(self.reward_count, 1)
+    def drain(self) -> tuple[float, list[tuple[float, int]], dict[str, float]]:
+        """The mean reward per step, the finished episodes and the means per step of
+        :data:`LOGGED_KEYS` (those measured) since the last call."""
+        n = max(self.reward_count, 1)
+        mean = self.reward_sum / n
+        quality = {k: v / n for k, v in self.quality_sums.items()}
         out, self.finished = self.finished, []
-        self.reward_sum, self.reward_count = 0.0, 0
-        return mean, out
+        self.reward_sum, self.reward_count, self.quality_sums = 0.0, 0, {}
+        return mean, out, quality
 
     def close(self) -> None:
         pass
@@ -269,7 +286,7 @@ def _callback(total: int, log_path: Path, progress: bool, adapter: SB3VecEnv, t0
             return True
 
         def _on_rollout_end(self) -> None:
-            reward_mean, eps = adapter.drain()
+            reward_mean, eps, quality = adapter.drain()
             logged = self.model.logger.name_to_value
             row = {
                 "env_steps": int(self.num_timesteps),
@@ -279,6 +296,7 @@ def _callback(total: int, log_path: Path, progress: bool, adapter: SB3VecEnv, t0
                 "return_mean": float(np.mean([r for r, _ in eps])) if eps else None,
                 "length_mean": float(np.mean([n for _, n in eps])) if eps else None,
                 "std": float(self.model.policy.log_std.detach().exp().mean()),
+                **quality,
             }
             for k in ("train/approx_kl", "train/value_loss", "train/explained_variance"):
                 if k in logged:
