@@ -3,9 +3,10 @@
 Prints one JSON line per measurement (and appends it to ``--out``). Not a test.
 
 * ``curves`` (Fig. 11): learning curves on target reaching for A-MDM steered by residuals and
-  the MVAE-style baseline steered through its latent, same task, PPO settings and budget, over
-  seeds; plus the residual per step (the paper's a_f) against one tied residual. Each curve's
-  rollouts go to ``--curves`` (JSON lines) for the chapter's plot.
+  the MVAE-style baseline steered through its latent, same task, reward, PPO settings and
+  budget, over seeds; plus two variants of the shipped design (:data:`CURVE_RUNS`): with a
+  motion penalty, and one residual over all 255 features. Each curve's rollouts (return, the task's
+  reward, bone error and foot sliding per frame) go to ``--curves`` for the chapter's plot.
 * ``target``: the same targets for the shipped policy (``rl_target``), chapter 5's beam search
   and chapter 6's inpainting along the straight line to the goal: success within 15 cm, time to
   target, foot sliding, bone error, acceleration and the share of frames stepping backwards.
@@ -22,7 +23,12 @@ Every method starts from the same state: frame 20 of the held-out take
 beam's candidates); targets, commands and paths are fixed.
 
     python benchmarks/rl_steering.py                        # everything but the curves
-    python benchmarks/rl_steering.py --only curves          # about 25 min on 2 cores
+    python benchmarks/rl_steering.py --only curves          # about 45 min on 2 cores
+    # or as two processes of one thread, half the curves each (about 25 min):
+    python benchmarks/rl_steering.py --only curves --threads 1 \
+        --curve amdm_residual_root mvae_latent
+    python benchmarks/rl_steering.py --only curves --threads 1 \
+        --curve amdm_residual_root_penalty amdm_residual_all
 """
 
 from __future__ import annotations
@@ -103,16 +109,35 @@ def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None 
 # --------------------------------------------------------------------------- curves
 
 
+CURVE_RUNS = {
+    # the shipped design (configs/rl_target.yaml): a tied residual on the root
+    "amdm_residual_root": {},
+    # Fig. 11's baseline: the MVAE-style model steered through its latent, same reward
+    "mvae_latent": {"base": "mvae"},
+    # the same with a motion penalty (0.1 per cm of bone error + foot sliding per frame)
+    "amdm_residual_root_penalty": {"motion_penalty": 0.1},
+    # one residual over all 255 features, on the 4 noisiest steps (w^t = 1)
+    "amdm_residual_all": {
+        "features": "all",
+        "n_levels": 4,
+        "anneal": "none",
+        "residual_scale": 1.0,
+    },
+}
+
+
+def _tail_mean(history: list[dict], key: str) -> float:
+    """Mean of ``key`` over the last 20% of the logged rollouts (NaN if never logged)."""
+    n = max(1, len(history) // 5)
+    v = [h[key] for h in history[-n:] if h.get(key) is not None]
+    return float(np.mean(v)) if v else float("nan")
+
+
 def curves(args) -> None:
-    base_cfg = load_config(ROOT / "configs" / "rl_target.yaml")
-    runs = {
-        "amdm_residual_tied": {},
-        "mvae_latent": {"base": "mvae"},
-        "amdm_residual_per_step": {"tied": False},
-    }
     import dataclasses
 
-    for name, change in runs.items():
+    base_cfg = load_config(ROOT / "configs" / "rl_target.yaml")
+    for name, change in CURVE_RUNS.items():
         if args.curve and name not in args.curve:
             continue
         finals = []
@@ -123,30 +148,23 @@ def curves(args) -> None:
                 r = train_policy(cfg, out, progress=False, num_threads=args.threads)
             except ValueError as e:  # PPO diverged: SB3's Gaussian got a NaN mean
                 emit({"curve": name, "seed": seed, "diverged": str(e).splitlines()[0]}, CURVES)
-                finals.append(
-                    {
-                        "final_return": float("nan"),
-                        "final_reward_per_frame": float("nan"),
-                        "seconds": float("nan"),
-                        "diverged": 1.0,
-                    }
-                )
+                finals.append({"diverged": 1.0})
                 continue
             for row in r.history:
                 emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)
-            n = max(1, len(r.history) // 5)
-            tail = [h["return_mean"] for h in r.history[-n:] if h["return_mean"] is not None]
             finals.append(
                 {
-                    "final_return": float(np.mean(tail)) if tail else float("nan"),
-                    "final_reward_per_frame": float(
-                        np.mean([h["reward_mean"] for h in r.history[-n:]])
-                    ),
+                    "final_return": _tail_mean(r.history, "return_mean"),
+                    "final_task_reward_per_frame": _tail_mean(r.history, "task_reward"),
+                    "final_bone_cm": _tail_mean(r.history, "bone_cm"),
+                    "final_slide_cm": _tail_mean(r.history, "slide_cm"),
                     "seconds": r.seconds,
                     "diverged": 0.0,
                 }
             )
-        summarize("curves", name, finals, {"budget": args.budget, "task": "target"})
+        keys = dict.fromkeys(k for f in finals for k in f)
+        finals = [{k: f.get(k, float("nan")) for k in keys} for f in finals]
+        summarize("curves", name, finals, {"budget": args.budget, "task": "target", **change})
 
 
 # --------------------------------------------------------------------------- target reaching
