@@ -365,17 +365,19 @@ def _diagnose(path: Path) -> str:
         return "it is empty (0 bytes): an interrupted copy?"
     with open(path, "rb") as f:
         head = f.read(16)
-    if head[:1] == b"\x80" or head[:2] == b"PK":
-        return (
-            "it looks like a pickle or torch.save file, which minimdm never loads (unpickling "
-            "runs code); convert the weights to safetensors"
-        )
     if size < 8:
         return f"it is truncated: {size} bytes, less than a safetensors header"
     n = int.from_bytes(head[:8], "little")
+    if head[8:9] != b"{":  # a safetensors header is JSON after its 8-byte length
+        if (head[:1] == b"\x80" and head[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05")) or (
+            head[:4] == b"PK\x03\x04"
+        ):
+            return (
+                "it looks like a pickle or torch.save file, which minimdm never loads "
+                "(unpickling runs code); convert the weights to safetensors"
+            )
+        return "it is not a safetensors file (it does not start with a safetensors header)"
     if n > size - 8:
-        if n > 100_000_000:
-            return "it is not a safetensors file (its first 8 bytes are no header length)"
         return f"it is truncated: its header needs {n} bytes, but the file holds {size - 8} more"
     try:
         with open(path, "rb") as f:
