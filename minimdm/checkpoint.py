@@ -25,6 +25,7 @@ import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -36,11 +37,13 @@ from safetensors.torch import save as st_save
 from torch import Tensor, nn
 
 from minimdm._version import __version__
+from minimdm.validate import InputError, MismatchError
 
 __all__ = [
     "FORMAT",
     "Checkpoint",
     "CheckpointMismatchError",
+    "CheckpointError",
     "checkpoint_paths",
     "save_checkpoint",
     "load_checkpoint",
@@ -58,8 +61,14 @@ _META_KEY = "minimdm"  # safetensors header key holding the metadata JSON
 _DEFAULT_STEM = "model"  # file stem used when a folder is given
 
 
-class CheckpointMismatchError(ValueError):
+class CheckpointMismatchError(MismatchError):
     """A checkpoint was made for another feature layout or skeleton than the one expected."""
+
+
+class CheckpointError(InputError):
+    """A checkpoint file that cannot be read: empty, truncated, not safetensors (a pickle, say),
+    a broken header, or weights that do not fit the network its metadata describes. The message
+    names the file and what is wrong with it."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -92,10 +101,18 @@ def model_spec(model: nn.Module) -> dict:
 
 def build_model(spec: dict) -> nn.Module:
     """Rebuild a network from :func:`model_spec`'s output (weights not loaded)."""
+    if not isinstance(spec, dict):
+        raise ValueError(f"model spec must be a dict with 'kind' and 'config', got {spec!r}")
     kind = spec.get("kind")
     if kind not in _BUILDERS:
         raise ValueError(f"model kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
-    return _BUILDERS[kind](dict(spec["config"]))
+    config = spec.get("config")
+    if not isinstance(config, dict):
+        raise ValueError(f"model config of kind {kind!r} must be a dict, got {config!r}")
+    try:
+        return _BUILDERS[kind](dict(config))
+    except (TypeError, ValueError, KeyError) as e:  # unknown or missing keys, bad values
+        raise ValueError(f"model config {config} does not build a {kind!r} network: {e}") from e
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,9 +154,39 @@ def _write(f: BinaryIO, data: bytes) -> None:
     f.write(data)
 
 
+def _pid_alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (one we may not signal counts)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: it exists, under another user
+        return True
+    return True
+
+
+def _remove_stale_temps(path: Path) -> list[Path]:
+    """Delete ``.NAME.tmp<PID>`` files beside ``path`` left by writers that died mid-write
+    (killed between writing and renaming); returns them. A live writer's file is kept."""
+    removed = []
+    prefix = f".{path.name}.tmp"
+    for tmp in path.parent.glob(f"{glob_escape(prefix)}*"):
+        pid = tmp.name[len(prefix) :]
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
 def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a synced temporary file and ``os.replace``."""
+    """Write ``data`` to ``path`` via a synced temporary file and ``os.replace``.
+
+    Temporary files of earlier writers of ``path`` that were killed are removed first.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temps(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         with open(tmp, "wb") as f:
@@ -311,12 +358,107 @@ class Checkpoint:
         return NoiseSchedule(d["schedule"], int(d["T"]), device=device)
 
 
+def _diagnose(path: Path) -> str:
+    """Why ``path`` is not a safetensors file, in words, from its first bytes and its size."""
+    size = path.stat().st_size
+    if size == 0:
+        return "it is empty (0 bytes): an interrupted copy?"
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if size < 8:
+        return f"it is truncated: {size} bytes, less than a safetensors header"
+    n = int.from_bytes(head[:8], "little")
+    if head[8:9] != b"{":  # a safetensors header is JSON after its 8-byte length
+        if (head[:1] == b"\x80" and head[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05")) or (
+            head[:4] == b"PK\x03\x04"
+        ):
+            return (
+                "it looks like a pickle or torch.save file, which minimdm never loads "
+                "(unpickling runs code); convert the weights to safetensors"
+            )
+        return "it is not a safetensors file (it does not start with a safetensors header)"
+    if n > size - 8:
+        return f"it is truncated: its header needs {n} bytes, but the file holds {size - 8} more"
+    try:
+        with open(path, "rb") as f:
+            f.seek(8)
+            entries = json.loads(f.read(n))
+        end = max(
+            (e["data_offsets"][1] for k, e in entries.items() if k != "__metadata__"), default=0
+        )
+    except (ValueError, KeyError, TypeError, IndexError):
+        return "its safetensors header is damaged (not the JSON a safetensors file starts with)"
+    if size < 8 + n + end:
+        return f"it is truncated: {size} bytes, but its header describes {8 + n + end}"
+    return "its safetensors header or data is damaged (overwritten?)"
+
+
+def _open_safetensors(path: Path, tensors: bool = True) -> tuple[dict, dict[str, Tensor]]:
+    """The header metadata of a safetensors file and (with ``tensors``) its tensors on the CPU;
+    :class:`CheckpointError` naming the file and what is wrong with it."""
+    from safetensors import SafetensorError
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            header = f.metadata() or {}
+        # st_load of the bytes (not safe_open's memory map) keeps the file closed afterwards
+        return header, (st_load(path.read_bytes()) if tensors else {})
+    except (FileNotFoundError, IsADirectoryError):
+        raise
+    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"cannot read checkpoint file {path}: {_diagnose(path)} ({e})") from e
+
+
+def _header_json(path: Path, header: dict, key: str) -> Any:
+    try:
+        return json.loads(header[key])
+    except json.JSONDecodeError as e:
+        raise CheckpointError(
+            f"checkpoint file {path}: its {key!r} header is not valid JSON ({e}); the file is "
+            "damaged"
+        ) from e
+
+
 def _read_header_meta(path: Path) -> dict:
-    with safe_open(str(path), framework="pt") as f:
-        header = f.metadata() or {}
+    header, _ = _open_safetensors(path, tensors=False)
     if _META_KEY not in header:
-        raise ValueError(f"{path} is not a minimdm checkpoint (no '{_META_KEY}' metadata)")
-    return json.loads(header[_META_KEY])
+        raise CheckpointError(f"{path} is not a minimdm checkpoint (no '{_META_KEY}' metadata)")
+    meta = _header_json(path, header, _META_KEY)
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"checkpoint file {path}: its metadata is not a JSON object")
+    return meta
+
+
+def _build_and_load(path: Path, meta: dict, state: dict[str, Tensor]) -> nn.Module:
+    """The network ``meta["model"]`` describes, with ``state`` loaded; :class:`CheckpointError`
+    naming ``path`` and the first tensor that is missing, unexpected or of another shape."""
+    if "model" not in meta:
+        raise CheckpointError(
+            f"checkpoint file {path}: its metadata has no 'model' entry (the network's kind "
+            "and config), so the network cannot be rebuilt"
+        )
+    try:
+        model = build_model(meta["model"])
+    except ValueError as e:
+        raise CheckpointError(f"checkpoint file {path}: {e}") from e
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        raise CheckpointError(
+            f"checkpoint file {path}: its weights do not fit the network its metadata describes "
+            f"({meta['model'].get('kind')}): missing tensors {missing[:5]}, unexpected tensors "
+            f"{unexpected[:5]}"
+        )
+    for k, v in own.items():
+        if tuple(state[k].shape) != tuple(v.shape):
+            raise CheckpointError(
+                f"checkpoint file {path}: its weights do not fit the network its metadata "
+                f"describes: tensor {k!r} has shape {tuple(state[k].shape)} in the file, but the "
+                f"network needs {tuple(v.shape)}"
+            )
+    model.load_state_dict(state, strict=True)
+    return model
 
 
 def _canonical(x: Any) -> Any:
@@ -389,11 +531,11 @@ def load_checkpoint(
     with the weights; the JSON file beside it is the readable copy.
     """
     paths = checkpoint_paths(path)
-    if not paths.weights.exists():
+    if not paths.weights.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}: expected the file {paths.weights}")
     meta = _read_header_meta(paths.weights)
     if meta.get("format") != FORMAT:
-        raise ValueError(
+        raise CheckpointError(
             f"checkpoint {paths.weights} has format {meta.get('format')!r}, expected {FORMAT!r}"
         )
     if paths.meta.exists():
@@ -409,9 +551,8 @@ def load_checkpoint(
             )
     _check_expected("feature layout", meta.get("feature_layout"), expected_layout, paths.weights)
     _check_expected("skeleton", meta.get("skeleton"), expected_skeleton, paths.weights)
-    model = build_model(meta["model"])
-    state = st_load(paths.weights.read_bytes())
-    model.load_state_dict(state, strict=True)
+    _, state = _open_safetensors(paths.weights)
+    model = _build_and_load(paths.weights, meta, state)
     model.to(device).eval()
     return Checkpoint(model=model, metadata=meta, paths=paths)
 
@@ -423,14 +564,20 @@ def load_train_state(path: str | os.PathLike) -> tuple[dict, dict]:
     ``optimizer_state``, with its tensors restored on the CPU.
     """
     paths = checkpoint_paths(path)
-    if not paths.train.exists():
+    if not paths.train.is_file():
         raise FileNotFoundError(f"no training state at {path}: expected the file {paths.train}")
-    with safe_open(str(paths.train), framework="pt") as f:
-        header = f.metadata() or {}
+    header, tensors = _open_safetensors(paths.train)
     if _META_KEY not in header or "train_state" not in header:
-        raise ValueError(f"{paths.train} is not a minimdm training state")
-    tensors = st_load(paths.train.read_bytes())
-    return json.loads(header[_META_KEY]), _unpack(json.loads(header["train_state"]), tensors)
+        raise CheckpointError(f"{paths.train} is not a minimdm training state")
+    meta = _header_json(paths.train, header, _META_KEY)
+    tree = _header_json(paths.train, header, "train_state")
+    try:
+        return meta, _unpack(tree, tensors)
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(
+            f"training state {paths.train}: its tensor index does not match its tensors ({e!r}); "
+            "the file is damaged"
+        ) from e
 
 
 def update_metadata(
@@ -445,13 +592,13 @@ def update_metadata(
     the weights file first. A training state (``STEM.train.safetensors``) is left untouched.
     """
     paths = checkpoint_paths(path)
-    if not paths.weights.exists():
+    if not paths.weights.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}: expected the file {paths.weights}")
     meta = _read_header_meta(paths.weights)
-    tensors = st_load(paths.weights.read_bytes())
+    _, tensors = _open_safetensors(paths.weights)
     edited = edit(meta)
     meta = _jsonable(meta if edited is None else edited)
-    build_model(meta["model"]).load_state_dict(tensors, strict=True)  # still fits the weights
+    _build_and_load(paths.weights, meta, tensors)  # the edit still fits the weights
     text = _dumps(meta)
     _atomic_write(paths.weights, st_save(tensors, metadata={_META_KEY: text}))
     _atomic_write(paths.meta, (text + "\n").encode())

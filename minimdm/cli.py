@@ -19,6 +19,7 @@ interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``posi
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -26,7 +27,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["main"]
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    check_device,
+    check_output_dir,
+    check_output_file,
+)
+
+__all__ = ["main", "build_parser"]
 
 CHECKPOINTS = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where shipped checkpoints live in a source checkout (``minimdm.pretrained`` looks here)."""
@@ -62,6 +71,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from minimdm.amdm.train import load_config, train_amdm
     from minimdm.config import with_changes
 
+    check_device("--device", args.device)
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)  # before the corpus is loaded
     config = load_config(args.config)
     changes = _overrides(args.set or [])
     if args.steps is not None:
@@ -69,7 +81,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     if args.device is not None:
         changes["device"] = args.device
     config = with_changes(config, changes, where="--set")
-    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_device("device (of the config)", config.device)
     result = train_amdm(
         config,
         out,
@@ -96,8 +108,9 @@ def _cmd_rl(args: argparse.Namespace) -> int:
     from minimdm.config import with_changes
     from minimdm.rl.train import load_config, train_policy
 
-    config = with_changes(load_config(args.config), _overrides(args.set or []), where="--set")
     out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)  # before the base model is loaded
+    config = with_changes(load_config(args.config), _overrides(args.set or []), where="--set")
     result = train_policy(
         config,
         out,
@@ -116,13 +129,34 @@ def _cmd_rl(args: argparse.Namespace) -> int:
 
 
 def _parse_start(text: str) -> tuple[str, int]:
+    """``"clip:frame"`` -> (clip, frame); ``"clip"`` -> (clip, 0), taken as frame 1."""
     name, _, frame = text.rpartition(":")
-    if not name:
+    if not name or not frame.lstrip("+-").isdigit():
         return text, 0
-    try:
-        return name, int(frame)
-    except ValueError:
-        return text, 0
+    if int(frame) < 1:
+        raise InputError(
+            f"--start must be CLIP or CLIP:FRAME with FRAME >= 1 (frame 0 has no velocity), "
+            f"got {text!r}"
+        )
+    return name, int(frame)
+
+
+SAMPLED_KINDS = ("amdm", "mse", "mvae")
+"""The checkpoint kinds ``minimdm sample`` and ``minimdm eval`` roll out."""
+
+
+def _check_kind(ckpt, command: str) -> None:
+    """:class:`InputError` unless the checkpoint holds a model this command can roll out."""
+    if ckpt.kind in SAMPLED_KINDS:
+        return
+    hint = {
+        "aamdm_motion": " (AAMDM models sample with minimdm.aamdm.eval.rollout_aamdm)",
+        "policy": " (a steering policy runs on its base model with minimdm.rl.rollout.steer)",
+    }.get(ckpt.kind, "")
+    raise InputError(
+        f"--checkpoint must hold an A-MDM, MVAE or MSE model (kinds {', '.join(SAMPLED_KINDS)}) "
+        f"for minimdm {command}, but {ckpt.paths.weights} holds kind {ckpt.kind!r}{hint}"
+    )
 
 
 def _cmd_sample(args: argparse.Namespace) -> int:
@@ -132,18 +166,19 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     from minimdm.checkpoint import load_checkpoint
     from minimdm.motion import bvh, features
 
-    out = Path(args.out)
-    if out.suffix.lower() not in (".npz", ".bvh", ".gif", ".mp4"):
-        raise SystemExit(f"--out must end in .npz, .bvh, .gif or .mp4, got {out.name!r}")
-    if args.frames < 1:
-        raise SystemExit(f"--frames must be >= 1, got {args.frames}")
-    ckpt = load_checkpoint(args.checkpoint, device=args.device)
-    if args.start is None:
+    # Everything the user gave is checked before the first frame is sampled: a bad --out must
+    # not throw away minutes of sampling.
+    out = check_output_file("--out", args.out, (".npz", ".bvh", ".gif", ".mp4"))
+    device = check_device("--device", args.device)
+    start = _parse_start(args.start) if args.start is not None else None
+    ckpt = load_checkpoint(args.checkpoint, device=device)
+    _check_kind(ckpt, "sample")
+    if start is None:
         split = "test" if ckpt.config.get("split") == "train" else "train"
-        args.start = evaluation.checkpoint_clips(ckpt, split=split)[0].name
-    name, frame = _parse_start(args.start)
+        start = evaluation.checkpoint_clips(ckpt, split=split)[0].name, 0
+    name, frame = start
     state = evaluation.initial_state(ckpt, name, frame)
-    g = torch.Generator(device=args.device).manual_seed(args.seed)
+    g = torch.Generator(device=device).manual_seed(args.seed)
     roll = rollout(
         ckpt,
         state.features,
@@ -152,9 +187,10 @@ def _cmd_sample(args: argparse.Namespace) -> int:
         steps=args.steps,
         generator=g,
         start_pose=state.start_pose,
-        device=args.device,
+        device=device,
         progress=not args.quiet,
     )
+    out.parent.mkdir(parents=True, exist_ok=True)
     pos = roll.positions[0].numpy()  # (K, F, J, 3)
     feats = roll.features[0].numpy()  # (K, F, D)
     skeleton = evaluation.checkpoint_skeleton(ckpt)
@@ -187,12 +223,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from minimdm.amdm import evaluation
     from minimdm.checkpoint import load_checkpoint
 
-    ckpt = load_checkpoint(args.checkpoint, device=args.device)
+    device = check_device("--device", args.device)
+    ckpt = load_checkpoint(args.checkpoint, device=device)
+    _check_kind(ckpt, "eval")
     protocol = evaluation.Protocol(
         n_states=args.states, n_samples=args.samples, seeds=tuple(range(args.seeds))
     )
     table = evaluation.table1(
-        {Path(args.checkpoint).name: ckpt}, protocol, steps=args.steps, device=args.device
+        {Path(args.checkpoint).name: ckpt}, protocol, steps=args.steps, device=device
     )
     row = next(iter(table.values()))
     if args.json:
@@ -223,66 +261,88 @@ def _cmd_data_download(args: argparse.Namespace) -> int:
     return 0
 
 
+def _int_arg(low: int):
+    """An argparse type: an integer >= ``low`` (argparse then reports ``minimdm CMD: error:``)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {low}"
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``minimdm`` command."""
     p = argparse.ArgumentParser(prog="minimdm", description=__doc__.split("\n\n")[0])
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--debug", action="store_true", help="show the traceback of an error, not one line"
+    )
     sub = p.add_subparsers(dest="command", required=True)
+    add = functools.partial(sub.add_parser, parents=[common])  # every command takes --debug
 
-    t = sub.add_parser("train", help="train a model from a YAML config (resumes if it can)")
+    t = add("train", help="train a model from a YAML config (resumes if it can)")
     t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm.yaml")
     t.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
-    t.add_argument("--steps", type=int, help="override total_steps")
+    t.add_argument("--steps", type=_int_arg(1), help="override total_steps")
     t.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
     )
     t.add_argument("--device", help="override the config's device (cpu, cuda)")
-    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    t.add_argument("--threads", type=_int_arg(1), default=1, help="torch CPU threads (default 1)")
     t.add_argument("--restart", action="store_true", help="ignore an existing training state")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=_cmd_train)
 
-    r = sub.add_parser("rl", help="train a steering policy with PPO (chapter 7)")
+    r = add("rl", help="train a steering policy with PPO (chapter 7)")
     r.add_argument("config", help="a YAML file of configs/, e.g. configs/rl_target.yaml")
     r.add_argument("--out", help="policy folder (default: checkpoints/<config stem>)")
     r.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
     )
-    r.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    r.add_argument("--threads", type=_int_arg(1), default=2, help="torch CPU threads (default 2)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(fn=_cmd_rl)
 
-    s = sub.add_parser("sample", help="roll a trained model out and save the motion")
+    s = add("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
-    s.add_argument("--frames", type=int, required=True, help="frames to generate")
+    s.add_argument("--frames", type=_int_arg(1), required=True, help="frames to generate")
     s.add_argument("--out", required=True, help="output .npz, .bvh, .gif or .mp4")
-    s.add_argument("--samples", type=int, default=1, help="futures from the start pose")
-    s.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
+    s.add_argument("--samples", type=_int_arg(1), default=1, help="futures from the start pose")
+    s.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     s.add_argument(
         "--start",
         default=None,
         help="start clip[:frame], e.g. dataset-1_run_normal_001:10 (default: the first held-out "
         "take, or the first training clip)",
     )
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=_int_arg(0), default=0)
     s.add_argument("--device", default="cpu")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=_cmd_sample)
 
-    e = sub.add_parser("eval", help="the Table 1 metrics of A-MDM §7.3")
+    e = add("eval", help="the Table 1 metrics of A-MDM §7.3")
     e.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
     e.add_argument("--json", action="store_true", help="print one JSON object")
-    e.add_argument("--states", type=int, default=10, help="fixed initial states")
-    e.add_argument("--samples", type=int, default=50, help="samples per initial state")
-    e.add_argument("--seeds", type=int, default=3, help="repeated seeds (mean ± std)")
-    e.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
+    e.add_argument("--states", type=_int_arg(1), default=10, help="fixed initial states")
+    e.add_argument("--samples", type=_int_arg(2), default=50, help="samples per initial state")
+    e.add_argument("--seeds", type=_int_arg(1), default=3, help="repeated seeds (mean ± std)")
+    e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
 
-    d = sub.add_parser("data", help="list and download motion corpora")
+    d = add("data", help="list and download motion corpora")
     dsub = d.add_subparsers(dest="data_command", required=True)
-    dl = dsub.add_parser("list", help="known corpora: licence, description, present or not")
+    add = functools.partial(dsub.add_parser, parents=[common])
+    dl = add("list", help="known corpora: licence, description, present or not")
     dl.set_defaults(fn=_cmd_data_list)
-    dd = dsub.add_parser("download", help="download and unpack a corpus (resumes if it can)")
+    dd = add("download", help="download and unpack a corpus (resumes if it can)")
     dd.add_argument("name", help="a corpus name, e.g. lafan1 (see `minimdm data list`)")
     dd.add_argument("--force", action="store_true", help="download and unpack again")
     dd.add_argument("--url", help="fetch from this address instead (a mirror or file://)")
@@ -291,16 +351,33 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError,  # InputError, BVHError, CheckpointError, CheckpointMismatchError, config errors
+    InputTypeError,
+    FileNotFoundError,
+    NotADirectoryError,
+    IsADirectoryError,
+    PermissionError,
+)
+"""What ``minimdm`` reports as one line ``minimdm CMD: error: ...`` (exit code 2): bad input,
+unreadable files, and every error the library raises for them. Anything else is a bug and keeps
+its traceback; ``--debug`` shows the traceback of these too."""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``minimdm`` console script."""
+    from minimdm.amdm.sampling import NonFiniteFrameError
     from minimdm.motion.download import DownloadError
 
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (ValueError, FileNotFoundError, DownloadError) as e:
+    except (*USER_ERRORS, DownloadError, NonFiniteFrameError) as e:
+        if args.debug:
+            raise
         where = " ".join(filter(None, [args.command, getattr(args, "data_command", None)]))
-        print(f"minimdm {where}: error: {e}", file=sys.stderr)
+        message = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())
+        print(f"minimdm {where}: error: {message}", file=sys.stderr)
         return 2
 
 

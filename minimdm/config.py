@@ -32,12 +32,25 @@ def load_config(path: str | os.PathLike, cls: type[T]) -> T:
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix in (".yaml", ".yml"):
-        data = yaml.safe_load(path.read_text())
-    elif suffix == ".toml":
-        data = _toml().loads(path.read_text())
-    else:
+    if suffix not in (".yaml", ".yml", ".toml"):
         raise ValueError(f"{path}: a config must be a .yaml, .yml or .toml file")
+    if not path.is_file():
+        what = "is a folder" if path.is_dir() else "does not exist"
+        raise FileNotFoundError(f"config file {path} {what}; expected a {suffix} file")
+    text = path.read_text(encoding="utf-8-sig")
+    if suffix == ".toml":
+        try:
+            data = _toml().loads(text)
+        except ValueError as e:  # tomllib.TOMLDecodeError says the line and column
+            raise ValueError(f"{path}: not valid TOML: {e}") from None
+    else:
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            at = f":{mark.line + 1}" if mark is not None else ""
+            problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+            raise ValueError(f"{path}{at}: not valid YAML: {problem}") from None
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ValueError(

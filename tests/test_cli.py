@@ -82,16 +82,19 @@ def test_sample_writes_npz_bvh_and_gif(trained, tmp_path):
     assert gif.stat().st_size > 1000
 
 
-def test_sample_rejects_bad_arguments(trained, tmp_path):
+def test_sample_rejects_bad_arguments(trained, tmp_path, capsys):
     _, out = trained
-    with pytest.raises(SystemExit, match=r"\.npz, \.bvh"):
-        main(
-            ["sample", "--checkpoint", str(out), "--frames", "5", "--out", str(tmp_path / "x.txt")]
-        )
-    with pytest.raises(SystemExit, match="frames must be >= 1"):
+    argv = ["sample", "--checkpoint", str(out), "--frames", "5", "--out", str(tmp_path / "x.txt")]
+    assert main(argv) == 2
+    assert "minimdm sample: error: --out must end in .npz, .bvh" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:  # argparse: exit code 2, the usual prefix
         main(
             ["sample", "--checkpoint", str(out), "--frames", "0", "--out", str(tmp_path / "x.npz")]
         )
+    assert exit_info.value.code == 2
+    assert "minimdm sample: error: argument --frames: must be an integer >= 1, got 0" in (
+        capsys.readouterr().err
+    )
     assert main(["sample", "--checkpoint", str(tmp_path / "none"), "--frames", "5",
                  "--out", str(tmp_path / "x.npz")]) == 2  # fmt: skip
 

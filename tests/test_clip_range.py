@@ -20,7 +20,12 @@ from minimdm.amdm.train import (
     train_amdm,
 )
 from minimdm.amdm.train_config import load_config
-from minimdm.checkpoint import load_checkpoint, save_checkpoint, update_metadata
+from minimdm.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+    update_metadata,
+)
 from minimdm.diffusion import clamp_share, clip_bounds
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,7 +100,7 @@ def test_update_metadata_keeps_weights_and_rejects_edits_that_do_not_fit(tmp_pat
     def bad(m):
         m["model"]["config"]["width"] = 9
 
-    with pytest.raises(RuntimeError):
+    with pytest.raises(CheckpointError, match=r"m\.safetensors.*do not fit.*\(9, 4\)"):
         update_metadata(tmp_path / "m", bad)
     assert paths.meta.read_text() == text  # nothing written
 

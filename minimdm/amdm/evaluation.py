@@ -39,6 +39,7 @@ from minimdm.motion.data import MotionDataset
 from minimdm.motion.features import FeatureLayout, StartPose, encode, start_pose_of
 from minimdm.motion.skeleton import Skeleton
 from minimdm.utils import format_table  # re-exported: the chapters print tables with it
+from minimdm.validate import InputError, check_int
 
 __all__ = [
     "Protocol",
@@ -180,7 +181,9 @@ def _start_clips(ckpt: Checkpoint, protocol: Protocol, unrolled: bool = True) ->
 def _state(clip, feats: Tensor, frame: int, ref_frames: int) -> InitialState:
     """The state describing clip frame ``frame`` (feature row ``frame - 1``)."""
     if not 1 <= frame < clip.n_frames:
-        raise ValueError(f"frame must lie in [1, {clip.n_frames - 1}] for clip {clip.name!r}")
+        raise InputError(
+            f"frame must lie in [1, {clip.n_frames - 1}] for clip {clip.name!r}, got {frame}"
+        )
     sp = start_pose_of(clip, frame)
     ref = clip.positions[frame + 1 : frame + 1 + ref_frames] if ref_frames else None
     sk = clip.skeleton
@@ -196,9 +199,18 @@ def initial_state(
 
     ``clip`` names a training clip or, for a checkpoint trained on a corpus's training split,
     a held-out test take."""
+    frame = check_int("frame", frame, low=0)
+    ref_frames = check_int("ref_frames", ref_frames, low=0)
     dataset = checkpoint_clips(ckpt)
+    names = list(dataset.names)
     if clip not in dataset.names and ckpt is not None and ckpt.config.get("split") == "train":
         dataset = checkpoint_clips(ckpt, split="test")
+        names += dataset.names
+    if clip not in dataset.names:
+        shown = ", ".join(names[:6]) + (f", ... ({len(names)} in all)" if len(names) > 6 else "")
+        raise InputError(
+            f"clip must name a clip of the checkpoint's motion ({shown}), got {clip!r}"
+        )
     c = dataset[clip]
     return _state(c, encode(c), max(1, frame), ref_frames)
 

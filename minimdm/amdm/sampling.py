@@ -31,10 +31,19 @@ from tqdm.auto import tqdm
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.checkpoint import Checkpoint, load_checkpoint
-from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, ddim_sample, ddpm_sample
-from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode
+from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, clip_bounds, ddim_sample, ddpm_sample
+from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
 from minimdm.utils import num_threads
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    check_device,
+    check_frames,
+    check_generator,
+    check_int,
+    check_number,
+)
 
 __all__ = [
     "NonFiniteFrameError",
@@ -89,7 +98,7 @@ def _resolve(model_or_checkpoint: Any, device) -> tuple[nn.Module, Checkpoint | 
         return model_or_checkpoint.model, model_or_checkpoint
     if isinstance(model_or_checkpoint, nn.Module):
         return model_or_checkpoint, None
-    raise ValueError(
+    raise InputTypeError(
         "model_or_checkpoint must be a Checkpoint, a checkpoint path or an nn.Module, "
         f"got {type(model_or_checkpoint).__name__}"
     )
@@ -226,8 +235,7 @@ def autoregress(
     Raises:
         NonFiniteFrameError: a frame holds NaN/Inf; names the frame and the row.
     """
-    if isinstance(n_frames, bool) or not isinstance(n_frames, int) or n_frames < 1:
-        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
+    n_frames = check_int("n_frames", n_frames, low=1)
     out: Tensor | None = None  # (B, F, ...) float32, CPU
     x = x0
     n = 0
@@ -333,37 +341,57 @@ def rollout(
         ValueError: bad ``init_states`` (shape, non-finite), ``n_frames`` or ``n_samples``.
         NonFiniteFrameError: a generated frame holds NaN/Inf; names the frame.
     """
+    device = check_device("device", device)
+    n_frames = check_int("n_frames", n_frames, low=1)
+    n_samples = check_int("n_samples", n_samples, low=1)
+    if steps is not None:
+        steps = check_int("steps", steps, low=1)
+    eta = check_number("eta", eta, low=0.0)
     model, ckpt = _resolve(model_or_checkpoint, device)
-    dev = torch.device(device) if device is not None else next(model.parameters()).device
+    if not isinstance(model, (MLPDenoiser, MVAE, MLPRegressor)):
+        where = f"checkpoint {ckpt.paths.weights} holds" if ckpt is not None else "got"
+        raise InputError(
+            f"model_or_checkpoint must be an A-MDM denoiser, an MVAE or an MSE regressor "
+            f"(kinds amdm, mvae, mse); {where} a {type(model).__name__}"
+            + (f" (kind {ckpt.kind!r})" if ckpt is not None else "")
+        )
+    dev = device if device is not None else next(model.parameters()).device
+    check_generator("generator", generator, dev)
     model = model.to(dev).eval()
     predicts = model.predicts if isinstance(model, MLPDenoiser) else "eps"
+    layout = skeleton = None
     if ckpt is not None:
         settings = sampler_settings(ckpt, dev)
         normalizer = normalizer if normalizer is not None else settings.normalizer
         schedule = schedule if schedule is not None else settings.schedule
         predicts = settings.predicts
-        if clip_x0 == "checkpoint":
+        layout, skeleton = settings.layout, settings.skeleton
+        if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
             clip_x0 = settings.clip_x0
-    if clip_x0 == "checkpoint":
+    if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
         clip_x0 = None
+    if isinstance(model, MLPDenoiser) and schedule is None:
+        raise InputError("schedule is required to sample from a bare denoiser, got None")
     if schedule is not None:
         schedule = schedule.to(dev)
     D = getattr(getattr(model, "config", None), "x_dim", None) or getattr(model, "x_dim", None)
+    if clip_x0 is not None and D is not None:
+        clip_bounds(clip_x0, D)  # checked here, before any frame is sampled
 
-    x0 = torch.as_tensor(init_states, dtype=torch.float32)
+    init_states, start_pose = start_state(
+        init_states, start_pose, skeleton=skeleton, layout=layout, name="init_states"
+    )
+    x0 = check_frames(
+        "init_states",
+        init_states,
+        D,
+        joints=layout.joint_names if layout is not None else None,
+        shape_words=f"(C, {D}) or ({D},)",
+    )
     if x0.dim() == 1:
         x0 = x0[None]
-    if x0.dim() != 2 or (D is not None and x0.shape[1] != D):
-        raise ValueError(f"init_states must have shape (C, {D}) or ({D},), got {tuple(x0.shape)}")
-    if not torch.isfinite(x0).all():
-        bad = (~torch.isfinite(x0)).any(1).nonzero()[0].item()
-        raise ValueError(f"init_states must be finite, but character {bad} holds NaN/Inf")
-    if not isinstance(n_frames, int) or n_frames < 1:
-        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
-    if not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples must be an integer >= 1, got {n_samples!r}")
     if steps is not None and schedule is not None and not 1 <= steps <= schedule.T:
-        raise ValueError(f"steps must lie in [1, T={schedule.T}], got {steps}")
+        raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
     C, K = x0.shape[0], n_samples
     # Small batches are launch-bound: extra threads only add synchronisation, and on a shared
     # 2-core machine they made batch-1 sampling 10x slower.

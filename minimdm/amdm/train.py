@@ -40,6 +40,7 @@ import copy
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -75,6 +76,7 @@ from minimdm.diffusion import (
 )
 from minimdm.nn import ema_update, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
+from minimdm.validate import InputTypeError, check_output_dir, describe
 
 __all__ = [
     "TrainConfig",
@@ -83,6 +85,7 @@ __all__ = [
     "train_amdm",
     "TrainResult",
     "resolve_clip_x0",
+    "read_log",
     "checkpoint_training_frames",
     "checkpoint_clamp_share",
 ]
@@ -194,6 +197,9 @@ def train_amdm(
         metadata: extra JSON-able facts stored in the checkpoint, e.g. the ``command`` that
             reproduces it (the CLI records it).
     """
+    if not isinstance(config, TrainConfig):
+        raise InputTypeError(f"config must be a TrainConfig, got {describe(config)}")
+    out_dir = check_output_dir("out_dir", out_dir)  # before any data is loaded or step taken
     with threads(num_threads):
         args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback, metadata)
         return _train(config, out_dir, features, *args)
@@ -339,7 +345,7 @@ def _train(
     log_path = out_dir / "log.jsonl"
     out_dir.mkdir(parents=True, exist_ok=True)
     if log_path.exists() and world.is_main:  # drop records past the resumed step
-        keep = [ln for ln in log_path.read_text().splitlines() if json.loads(ln)["step"] <= step]
+        keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
         log_path.write_text("".join(ln + "\n" for ln in keep))
     history: list[dict] = []
 
@@ -408,6 +414,39 @@ def _train(
 
 # --------------------------------------------------------------------------------------------
 # The x0 clamp: the training data's range
+
+
+def read_log(path: str | os.PathLike) -> list[tuple[str, dict]]:
+    """The records of a training log (``log.jsonl``), each with its line of text.
+
+    A process killed while appending leaves a torn last line: it is skipped with a warning that
+    names the file (the training state, written atomically, is intact). A bad line elsewhere is
+    no kill's doing and raises a ``ValueError`` naming the file and the line.
+    """
+    path = Path(path)
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    while lines and not lines[-1].strip():
+        lines.pop()
+    out = []
+    for i, ln in enumerate(lines, start=1):
+        try:
+            rec = json.loads(ln)
+            if not isinstance(rec, dict) or not isinstance(rec.get("step"), int):
+                raise ValueError("a record must be a JSON object with an integer 'step'")
+        except ValueError as e:
+            if i == len(lines):
+                warnings.warn(
+                    f"{path}:{i}: skipping a torn last log line (a run killed while writing "
+                    f"it?): {ln[:60]!r}",
+                    stacklevel=2,
+                )
+                break
+            raise ValueError(
+                f"{path}:{i}: expected a JSON log record with a 'step', got {ln[:60]!r} ({e}); "
+                "fix or delete that line to resume"
+            ) from None
+        out.append((ln, rec))
+    return out
 
 
 def resolve_clip_x0(clip_x0: Any, frames: Sequence[Tensor | np.ndarray]) -> Any:

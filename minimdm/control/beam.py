@@ -30,13 +30,13 @@ from torch import Tensor, nn
 from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion.features import StartPose, decode, decode_root
+from minimdm.validate import InputTypeError, describe
 
 from .core import (
     ControlModel,
     Motion,
     as_control_model,
     as_start,
-    as_start_pose,
     check_count,
     sample_frame,
 )
@@ -158,10 +158,11 @@ def beam_search(
     if commit > H:
         raise ValueError(f"commit must lie in [1, horizon={H}], got {commit}")
     if not callable(score_fn):
-        raise ValueError(f"score_fn must be callable, got {type(score_fn).__name__}")
-    x0, batched = as_start(cm, start)
+        raise InputTypeError(f"score_fn must be callable, got {describe(score_fn)}")
+    if stop_fn is not None and not callable(stop_fn):
+        raise InputTypeError(f"stop_fn must be callable or None, got {describe(stop_fn)}")
+    x0, batched, sp = as_start(cm, start, start_pose, generator)
     B, D = x0.shape
-    sp = as_start_pose(start_pose, B)
     xy, heading = sp.xy.clone(), sp.heading.clone()  # (B, 2), (B,) the current root pose
     out = torch.empty(B, n_frames, D, dtype=torch.float32)  # normalized frames, CPU
     best_scores = torch.full((B, n_frames), float("nan"))

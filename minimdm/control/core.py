@@ -22,9 +22,25 @@ from torch import Tensor, nn
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.amdm.sampling import check_finite, next_frame, sampler_settings
 from minimdm.checkpoint import Checkpoint, load_checkpoint
-from minimdm.diffusion import ClipX0, Hook, NoiseSchedule
-from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, decode_root
+from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, clip_bounds
+from minimdm.motion.features import (
+    FeatureLayout,
+    Normalizer,
+    StartPose,
+    decode,
+    decode_root,
+    start_state,
+)
 from minimdm.motion.skeleton import Skeleton
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    check_device,
+    check_frames,
+    check_generator,
+    check_int,
+    check_number,
+)
 
 __all__ = ["ControlModel", "as_control_model", "regressor_noise", "sample_frame", "Motion"]
 
@@ -101,6 +117,10 @@ def as_control_model(
     """
     if isinstance(model, ControlModel):
         return model
+    device = check_device("device", device)
+    if steps is not None:
+        steps = check_int("steps", steps, low=1)
+    eta = check_number("eta", eta, low=0.0)
     if isinstance(model, (str, os.PathLike)):
         model = load_checkpoint(model, device=device or "cpu")
     layout = skeleton = None
@@ -109,34 +129,38 @@ def as_control_model(
         normalizer = normalizer if normalizer is not None else settings.normalizer
         schedule = schedule if schedule is not None else settings.schedule
         predicts = predicts or settings.predicts
-        if clip_x0 == "checkpoint":
+        if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
             clip_x0 = settings.clip_x0
         layout, skeleton = settings.layout, settings.skeleton
         net = model.model
     elif isinstance(model, nn.Module):
         net = model
     else:
-        raise ValueError(
+        raise InputTypeError(
             "model must be a Checkpoint, a checkpoint path, an nn.Module or a ControlModel, "
             f"got {type(model).__name__}"
         )
     if not isinstance(net, (MLPDenoiser, MVAE, MLPRegressor)):
-        raise ValueError(
-            f"model must be an MLPDenoiser, MVAE or MLPRegressor, got {type(net).__name__}"
+        held = f" (checkpoint kind {model.kind!r})" if isinstance(model, Checkpoint) else ""
+        raise InputError(
+            f"model must be an MLPDenoiser, MVAE or MLPRegressor, got {type(net).__name__}{held}"
         )
-    if clip_x0 == "checkpoint":
+    if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
         clip_x0 = None
+    if clip_x0 is not None:
+        x_dim = getattr(getattr(net, "config", None), "x_dim", None) or net.x_dim
+        clip_bounds(clip_x0, int(x_dim))  # checked before any frame is sampled
     if isinstance(net, MLPDenoiser):
         predicts = predicts or net.predicts
         if schedule is None:
-            raise ValueError("schedule is required to sample from a bare denoiser")
+            raise InputError("schedule is required to sample from a bare denoiser, got None")
     if device is not None:
         net = net.to(device)
     net.eval()
     if schedule is not None:
         schedule = schedule.to(next(net.parameters()).device)
         if steps is not None and not 1 <= steps <= schedule.T:
-            raise ValueError(f"steps must lie in [1, T={schedule.T}], got {steps}")
+            raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
     if isinstance(noise, Tensor) and noise.numel() > 1:
         noise = noise.to(next(net.parameters()).device)
     return ControlModel(
@@ -204,31 +228,34 @@ def sample_frame(
     return x
 
 
-def as_start(cm: ControlModel, start: Any) -> tuple[Tensor, bool]:
-    """``start`` (D,) or (B, D), feature units -> ((B, D) float32 on the model device, batched)."""
-    x = torch.as_tensor(start, dtype=torch.float32)
+def as_start(
+    cm: ControlModel, start: Any, start_pose: Any = None, generator: Any = None
+) -> tuple[Tensor, bool, StartPose]:
+    """Check what a technique starts from: ``start`` (D,) or (B, D) in feature units, or a
+    :class:`~minimdm.motion.data.Clip` to continue (:func:`~minimdm.motion.features.start_state`,
+    which compares the skeleton and frame rate it came from with the model's), its
+    ``start_pose`` and the ``generator``.
+
+    Returns:
+        ``(x, batched, start_pose)``: x (B, D) float32 on the model's device, whether ``start``
+        was batched, and a :class:`StartPose` with xy (B, 2) and heading (B,) float64.
+    """
+    check_generator("generator", generator, cm.device)
+    start, start_pose = start_state(
+        start, start_pose, skeleton=cm.skeleton, layout=cm.layout, name="start"
+    )
+    D = cm.dim
+    joints = cm.layout.joint_names if cm.layout is not None else None
+    x = check_frames("start", start, D, joints=joints)
     batched = x.dim() == 2
     if x.dim() == 1:
         x = x[None]
-    D = cm.dim
-    if x.dim() != 2 or x.shape[1] != D:
-        raise ValueError(f"start must have shape ({D},) or (B, {D}), got {tuple(x.shape)}")
-    if not torch.isfinite(x).all():
-        bad = (~torch.isfinite(x)).any(1).nonzero()[0].item()
-        raise ValueError(f"start must be finite, but character {bad} holds NaN/Inf")
-    return x.to(cm.device), batched
-
-
-def as_start_pose(start_pose: Any, B: int) -> StartPose:
-    """A StartPose with xy (B, 2) and heading (B,) float64 (default: origin, heading 0)."""
-    return StartPose.broadcast(start_pose, B)
+    return x.to(cm.device), batched, StartPose.broadcast(start_pose, x.shape[0])
 
 
 def check_count(name: str, value: Any, minimum: int = 1) -> int:
-    """``ValueError`` unless ``value`` is an integer >= ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
+    """:func:`minimdm.validate.check_int` with a lower bound: an integer >= ``minimum``."""
+    return check_int(name, value, low=minimum)
 
 
 @dataclass

@@ -23,13 +23,20 @@ from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.diffusion import q_sample
 from minimdm.motion.features import StartPose
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    check_frames,
+    check_int,
+    check_mask,
+    describe,
+)
 
 from .core import (
     ControlModel,
     Motion,
     as_control_model,
     as_start,
-    as_start_pose,
     check_count,
     sample_frame,
 )
@@ -45,18 +52,14 @@ def check_targets(targets: Any, mask: Any, D: int, B: int) -> tuple[Tensor, Tens
 
     Entries where the mask is 0 are ignored and may be NaN; masked ones must be finite.
     """
-    x = torch.as_tensor(targets, dtype=torch.float32)
-    if x.dim() not in (2, 3) or x.shape[-1] != D:
-        raise ValueError(f"targets must have shape (F, {D}) or (B, F, {D}), got {tuple(x.shape)}")
+    x = check_frames(
+        "targets", targets, D, ndim=(2, 3), shape_words=f"(F, {D}) or (B, F, {D})", allow_nan=True
+    )
     if x.dim() == 3 and x.shape[0] not in (1, B):
-        raise ValueError(f"targets must have batch size {B} or 1, got {tuple(x.shape)}")
+        raise InputError(f"targets must have batch size {B} or 1, got {tuple(x.shape)}")
     x = x.reshape(-1, *x.shape[-2:]).expand(B, -1, -1)  # (B, F, D)
     F = x.shape[1]
-    if F < 1:
-        raise ValueError("targets must hold at least one frame")
-    m = torch.as_tensor(mask)
-    if m.dtype.is_floating_point and not ((m == 0) | (m == 1)).all():
-        raise ValueError("mask must be binary (0/1 or bool)")
+    m = check_mask("mask", mask)
     if m.dim() == 0 or m.shape[-1] != D:
         raise ValueError(
             f"mask must have last dim D={D} (the feature dimension), got shape {tuple(m.shape)}"
@@ -115,15 +118,11 @@ def inpaint(
     cm = as_control_model(model)
     if not cm.is_diffusion:
         raise ValueError(f"inpainting needs a diffusion model, got {type(cm.net).__name__}")
-    x0, batched = as_start(cm, start)
+    x0, batched, sp = as_start(cm, start, start_pose, generator)
     B, D = x0.shape
     tgt, m = check_targets(targets, mask, D, B)  # (B, F, D)
     F = tgt.shape[1]
-    stops = torch.as_tensor(t_stop, dtype=torch.long).reshape(-1)
-    if stops.numel() not in (1, F):
-        raise ValueError(f"t_stop must be an int or hold F={F} values, got {stops.numel()}")
-    stops = stops.expand(F)
-    sp = as_start_pose(start_pose, B)
+    stops = _t_stops(t_stop, F, cm.schedule.T)
     tgt_n = cm.normalize(tgt).to(cm.device)  # (B, F, D)
     m = m.to(cm.device)
 
@@ -138,30 +137,48 @@ def inpaint(
     return Motion.from_normalized(cm, out, sp, batched, {"t_stop": stops}, features=feats)
 
 
+def _t_stops(t_stop: Any, F: int, T: int) -> Tensor:
+    """``t_stop`` (an int or F of them, each in [-1, T - 1]) as an (F,) long tensor."""
+    expected = f"an integer in [-1, {T - 1}] (-1: every step) or F={F} of them"
+    if isinstance(t_stop, (bool, float, str)) or t_stop is None:
+        raise InputTypeError(f"t_stop must be {expected}, got {describe(t_stop)}")
+    try:
+        stops = torch.as_tensor(t_stop)
+    except (TypeError, ValueError, RuntimeError):
+        raise InputTypeError(f"t_stop must be {expected}, got {describe(t_stop)}") from None
+    if stops.dtype.is_floating_point or stops.dtype == torch.bool or stops.is_complex():
+        raise InputTypeError(f"t_stop must be {expected}, got a tensor of {stops.dtype}")
+    stops = stops.to(torch.long).reshape(-1)
+    if stops.numel() not in (1, F):
+        raise InputError(f"t_stop must be {expected}, got {stops.numel()} values")
+    if ((stops < -1) | (stops >= T)).any():
+        bad = int(stops[(stops < -1) | (stops >= T)][0])
+        raise InputError(f"t_stop must be {expected}, got {bad}")
+    return stops.expand(F)
+
+
 def _character(b: int) -> str:
     return f"character {b}"
 
 
 def _keyframes(keyframe: Any, at: Any, n_frames: int, D: int, B: int) -> tuple[Tensor, list[int]]:
     """-> keyframes (B, K, D) and their frames [a_1 < ... < a_K <= n_frames]."""
-    k = torch.as_tensor(keyframe, dtype=torch.float32)
+    words = f"({D},), (K, {D}) or (B, K, {D}) (frames of this model's skeleton and layout)"
+    k = check_frames("keyframe", keyframe, D, ndim=(1, 2, 3), shape_words=words)
     if k.dim() == 1:
         k = k[None]
-    if k.dim() not in (2, 3) or k.shape[-1] != D:
-        raise ValueError(
-            f"keyframe must have shape ({D},), (K, {D}) or (B, K, {D}) (frames of this model's "
-            f"skeleton and feature layout), got {tuple(k.shape)}"
-        )
-    if not torch.isfinite(k).all():
-        raise ValueError("keyframe must be finite, but it holds NaN/Inf")
     if k.dim() == 3 and k.shape[0] not in (1, B):
         raise ValueError(f"keyframe must have batch size {B} or 1, got {tuple(k.shape)}")
     k = k.reshape(-1, *k.shape[-2:]).expand(B, -1, -1)
     K = k.shape[1]
     ats = [n_frames] if at is None and K == 1 else at
     if ats is None:
-        raise ValueError(f"at must give the frame of each of the K={K} keyframes")
-    ats = [int(a) for a in torch.as_tensor(ats).reshape(-1).tolist()]
+        raise InputError(f"at must give the frame of each of the K={K} keyframes, got None")
+    if isinstance(ats, Tensor):
+        ats = ats.reshape(-1).tolist()
+    elif not isinstance(ats, (list, tuple)):
+        ats = [ats]
+    ats = [check_int(f"at[{i}]" if K > 1 else "at", a, low=1) for i, a in enumerate(ats)]
     if len(ats) != K:
         raise ValueError(f"at must hold one frame per keyframe (K={K}), got {len(ats)}")
     prev = 0
@@ -215,11 +232,10 @@ def inbetween(
     if not cm.is_diffusion:
         raise ValueError(f"inbetweening needs a diffusion model, got {type(cm.net).__name__}")
     n_frames = check_count("n_frames", n_frames)
-    x0, batched = as_start(cm, start)
+    x0, batched, sp = as_start(cm, start, start_pose, generator)
     B, D = x0.shape
     keys, ats = _keyframes(keyframe, at, n_frames, D, B)
     keys_n = cm.normalize(keys).to(cm.device)  # (B, K, D)
-    sp = as_start_pose(start_pose, B)
     T = cm.schedule.T
     t_starts: list[int] = []
     key = {"k": 0, "prev": 0}  # the next keyframe and the frame of the previous one
@@ -257,10 +273,9 @@ def lerp_inbetween(
     (\\tilde x_N - x_0)`, f = 1..N, decoded like a model's frames (no model is run)."""
     cm = as_control_model(model)
     n_frames = check_count("n_frames", n_frames)
-    x0, batched = as_start(cm, start)
+    x0, batched, sp = as_start(cm, start, start_pose)
     B, D = x0.shape
     keys, _ = _keyframes(keyframe, None, n_frames, D, B)
     w = torch.arange(1, n_frames + 1, dtype=torch.float32)[None, :, None] / n_frames  # (1, N, 1)
     feats = x0.cpu()[:, None] + w * (keys[:, 0:1] - x0.cpu()[:, None])  # (B, N, D)
-    sp = as_start_pose(start_pose, B)
     return Motion.from_normalized(cm, cm.normalize(feats), sp, batched, {}, features=feats)

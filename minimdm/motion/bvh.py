@@ -33,8 +33,9 @@ import numpy as np
 import torch
 
 from minimdm.utils import num_threads
+from minimdm.validate import InputTypeError, check_number, describe, skeleton_difference
 
-from .data import Clip, MotionDataset, _n_samples, resample_clip
+from .data import MAX_FRAMES, Clip, MotionDataset, _n_samples, resample_clip
 from .skeleton import (
     Skeleton,
     axis_rotation,
@@ -44,7 +45,7 @@ from .skeleton import (
     quat_to_matrix,
 )
 
-__all__ = ["BVHError", "load_bvh", "save_bvh", "BVH_TO_WORLD"]
+__all__ = ["BVHError", "load_bvh", "save_bvh", "BVH_TO_WORLD", "MAX_FRAMES"]
 
 _F64 = torch.float64
 
@@ -63,6 +64,8 @@ _ROT = {"xrotation": "X", "yrotation": "Y", "zrotation": "Z"}
 def _parse_bvh(text: str, src: str):
     """Hierarchy and motion of a BVH file; raises :class:`BVHError` naming the line."""
     lines = text.splitlines()
+    if not text.strip():
+        raise BVHError(f"{src}:1: expected HIERARCHY, got an empty file")
     toks: list[tuple[str, int]] = []
     motion_line = None
     for ln, line in enumerate(lines, start=1):
@@ -242,8 +245,6 @@ def _guess_lateral_axis(names: list[str], parents: list[int], rest: np.ndarray) 
 
 MIN_FPS, MAX_FPS = 1.0, 1000.0
 """Frame rates a BVH file may declare (``1 / Frame Time``); outside them the file is refused."""
-MAX_FRAMES = 1_000_000
-"""The most frames a loaded clip may have after resampling (about 9 hours at 30 Hz)."""
 HUMAN_EXTENT = (1.2, 2.0)
 """Metres: the typical vertical extent of a standing human's joints (ankles to head joint)."""
 
@@ -353,10 +354,7 @@ def _guess_scale(path: Path, extent: float) -> float:
 
 def _first_difference(a: Skeleton, b: Skeleton) -> str:
     """The first joint where two skeletons' names or parents differ, in words."""
-    for i, (na, nb) in enumerate(zip(a.names, b.names, strict=False)):
-        if na != nb or a.parents[i] != b.parents[i]:
-            return f"joint {i} is {na!r} (parent {a.parents[i]}) vs {nb!r} (parent {b.parents[i]})"
-    return f"{len(a.names)} vs {len(b.names)} joints"
+    return skeleton_difference(a.names, a.parents, b.names, b.parents) or "no difference"
 
 
 def _load_one_bvh(
@@ -391,8 +389,6 @@ def _load_one_bvh(
             )
     if scale is None:
         scale = _guess_scale(path, _standing_extent(names, parents, trans, rot))
-    elif not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale must be a finite number > 0 (file units -> metres), got {scale!r}")
     C = torch.tensor(BVH_TO_WORLD, dtype=_F64)
     world_offsets = trans[0] @ BVH_TO_WORLD.T * scale
     world_offsets[0] = offsets[kept[0]] @ BVH_TO_WORLD.T * scale  # the file's rest offset
@@ -429,7 +425,15 @@ def load_bvh(
     world (module docstring). Foot joints are guessed from names containing foot/ankle (else
     toe), the heading axis from a left/right joint pair such as the hips.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputTypeError(f"path must be a .bvh file or a folder, got {describe(path)}")
     path = Path(path)
+    if fps is not None:
+        fps = check_number("fps", fps, low=MIN_FPS, high=MAX_FPS)
+    if scale is not None:  # file units -> metres
+        scale = check_number("scale", scale, low=0.0, low_open=True)
+    if not path.exists():
+        raise FileNotFoundError(f"no BVH file or folder at {path}")
     with num_threads(1):  # many small ops: threads only add latency
         if not path.is_dir():
             return _load_one_bvh(path, fps, scale, path.stem)[0]

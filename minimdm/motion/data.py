@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from minimdm.utils import num_threads
+from minimdm.validate import InputError, check_number
 
 from .skeleton import (
     Y_UP_TO_Z_UP,
@@ -55,6 +56,7 @@ __all__ = [
     "load_deepmimic",
     "resample_clip",
     "CLIP_NAMES",
+    "MAX_FRAMES",
 ]
 
 _F64 = torch.float64
@@ -257,6 +259,10 @@ class MotionDataset(Sequence):
 # --------------------------------------------------------------------------- resampling
 
 
+MAX_FRAMES = 1_000_000
+"""The most frames a resampled clip may have (about 9 hours at 30 Hz)."""
+
+
 def _n_samples(duration: float, fps: float) -> int:
     return int(math.floor(duration * fps + 0.01)) + 1
 
@@ -275,7 +281,18 @@ def _interpolate(times: torch.Tensor, root: torch.Tensor, quats: torch.Tensor, t
 
 
 def resample_clip(clip: Clip, fps: float = 30.0) -> Clip:
-    """Resample a clip to ``fps`` (slerp for rotations, linear for the root position)."""
+    """Resample a clip to ``fps`` (slerp for rotations, linear for the root position).
+
+    Raises:
+        InputError: ``fps`` is not a finite number > 0, or the result would hold more than
+            :data:`MAX_FRAMES` frames.
+    """
+    fps = check_number("fps", fps, low=0.0, low_open=True)
+    if _n_samples(clip.duration, fps) > MAX_FRAMES:
+        raise InputError(
+            f"fps must keep clip {clip.name!r} ({clip.duration:g} s) under {MAX_FRAMES} frames, "
+            f"got {fps:g}, which would make {_n_samples(clip.duration, fps)}"
+        )
     if abs(clip.fps - fps) <= 1e-3 * fps:
         return Clip(
             clip.name,

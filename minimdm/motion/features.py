@@ -34,6 +34,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
+from minimdm.validate import InputError, InputTypeError, check_int, check_skeleton, describe
+
 from .data import Clip
 from .skeleton import (
     Skeleton,
@@ -49,6 +51,7 @@ __all__ = [
     "FeatureLayout",
     "StartPose",
     "start_pose_of",
+    "start_state",
     "encode",
     "encode_motion",
     "decode",
@@ -144,6 +147,11 @@ class StartPose:
     """(..., 2) root ground position, metres."""
     heading: Tensor
     """(...,) heading, radians."""
+    skeleton: Skeleton | None = None
+    """The skeleton of the motion this pose comes from, when known (:func:`start_pose_of` sets
+    it); samplers compare it with their model's (:func:`start_state`)."""
+    fps: float | None = None
+    """The frame rate of that motion, when known; samplers compare it with their model's."""
 
     @staticmethod
     def broadcast(start_pose: StartPose | dict | None, n: int) -> StartPose:
@@ -155,17 +163,96 @@ class StartPose:
             return StartPose(
                 torch.zeros(n, 2, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
             )
-        sp = start_pose if isinstance(start_pose, StartPose) else StartPose(**start_pose)
-        xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
-        heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
+        sp = _as_start_pose(start_pose)
+        try:
+            xy = torch.as_tensor(sp.xy, dtype=torch.float64).reshape(-1, 2)
+            heading = torch.as_tensor(sp.heading, dtype=torch.float64).reshape(-1)
+        except (TypeError, ValueError, RuntimeError):
+            raise InputError(
+                f"start_pose must have xy ({n}, 2) or (2,) and heading ({n},) or () of numbers, "
+                f"got xy {describe(sp.xy)} and heading {describe(sp.heading)}"
+            ) from None
         if xy.shape[0] not in (1, n) or heading.shape[0] not in (1, n):
-            raise ValueError(
+            raise InputError(
                 f"start_pose must have xy ({n}, 2) or (2,) and heading ({n},) or (), "
                 f"got {tuple(xy.shape)} and {tuple(heading.shape)}"
             )
         if not (torch.isfinite(xy).all() and torch.isfinite(heading).all()):
-            raise ValueError("start_pose must be finite, but it holds NaN/Inf")
-        return StartPose(xy.expand(n, 2).clone(), heading.expand(n).clone())
+            raise InputError("start_pose must be finite, but it holds NaN/Inf")
+        return StartPose(xy.expand(n, 2).clone(), heading.expand(n).clone(), sp.skeleton, sp.fps)
+
+
+def _as_start_pose(start_pose: Any) -> StartPose:
+    """A StartPose from a StartPose or a dict with ``xy`` and ``heading``."""
+    if isinstance(start_pose, StartPose):
+        return start_pose
+    if isinstance(start_pose, dict):
+        try:
+            return StartPose(**start_pose)
+        except TypeError:
+            pass
+    raise InputTypeError(
+        "start_pose must be a StartPose, a dict with keys 'xy' and 'heading', or None, got "
+        f"{describe(start_pose)}"
+    )
+
+
+def start_state(
+    start: Any,
+    start_pose: StartPose | dict | None,
+    *,
+    skeleton: Skeleton | None = None,
+    layout: FeatureLayout | None = None,
+    name: str = "start",
+) -> tuple[Any, StartPose | dict | None]:
+    """Resolve what a sampler starts from, and check that it fits the model.
+
+    ``start`` is frames in feature units, returned as they are, or a :class:`Clip`: then the
+    motion continues the clip, from its last frame (its last encoded row, and its start pose
+    unless ``start_pose`` is given). The skeleton and frame rate the start came from (the
+    clip's, or those a :class:`StartPose` carries) are compared with the model's ``skeleton``
+    and ``layout`` (:func:`minimdm.validate.check_skeleton`); what is unknown is not compared.
+
+    Returns:
+        ``(frames, start_pose)``.
+
+    Raises:
+        MismatchError: another skeleton or frame rate; names both and the first difference.
+    """
+    given_sk = given_fps = None
+    if isinstance(start, Clip):
+        if start.n_frames < 2:
+            raise InputError(
+                f"{name} must be a clip of at least 2 frames (a frame's features need the one "
+                f"before it), got clip {start.name!r} of {start.n_frames}"
+            )
+        given_sk, given_fps = start.skeleton, start.fps
+        frames = encode(start)[-1]  # (D,) clip frame F - 1
+        if start_pose is None:
+            start_pose = start_pose_of(start, start.n_frames - 1)
+    else:
+        frames = start
+    if start_pose is not None:
+        sp = _as_start_pose(start_pose)
+        given_sk = given_sk if given_sk is not None else sp.skeleton
+        given_fps = given_fps if given_fps is not None else sp.fps
+    expected = skeleton
+    if expected is None and layout is not None:
+        expected = {"names": list(layout.joint_names)}
+    elif (
+        expected is not None
+        and layout is not None
+        and list(layout.joint_names) != list(skeleton.names)
+    ):
+        expected = {"names": list(layout.joint_names)}  # the features follow the layout
+    check_skeleton(
+        name,
+        given_sk,
+        expected,
+        given_fps=given_fps,
+        expected_fps=layout.fps if layout is not None else None,
+    )
+    return frames, start_pose
 
 
 def _as_start(start: StartPose | dict, like: Tensor) -> tuple[Tensor, Tensor]:
@@ -177,11 +264,15 @@ def _as_start(start: StartPose | dict, like: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def start_pose_of(clip: Clip, frame: int = 0) -> StartPose:
-    """The root ground position and heading of ``clip`` at ``frame`` (float64)."""
+    """The root ground position and heading of ``clip`` at ``frame`` (float64), with the
+    clip's skeleton and frame rate (which samplers compare with their model's)."""
+    frame = check_int("frame", frame, low=-clip.n_frames, high=clip.n_frames - 1)
     _, rot = clip.fk()
     return StartPose(
         xy=torch.as_tensor(clip.root_pos[frame, :2], dtype=torch.float64),
         heading=heading_angle(rot[frame, 0], clip.skeleton.lateral_axis),
+        skeleton=clip.skeleton,
+        fps=float(clip.fps),
     )
 
 
