@@ -43,6 +43,8 @@ from minimdm.motion.bvh import BVHError, load_bvh, save_bvh
 from minimdm.motion.data import Clip, resample_clip
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, encode, start_pose_of
 from minimdm.motion.skeleton import Skeleton, axis_angle_to_quat
+from minimdm.rl import load_steering
+from minimdm.rl.train import RLConfig
 from minimdm.validate import InputError, InputTypeError, MismatchError
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -715,6 +717,15 @@ cli("cli/rl missing config", ("minimdm rl: error:", "nope.yaml", "does not exist
     lambda c: ["rl", str(c.root / "nope.yaml"), "--out", str(c.root / "run")])  # fmt: skip
 cli("cli/rl --threads 0", ("minimdm rl: error:", "--threads", ">= 1"),
     lambda c: ["rl", "configs/rl_target.yaml", "--threads", "0"])  # fmt: skip
+cli("cli/rl negative motion penalty", ("minimdm rl: error:", "motion_penalty", ">= 0", "-1"),
+    lambda c: ["rl", "configs/rl_target.yaml", "--set", "motion_penalty=-1",
+               "--out", str(c.root / "run")])  # fmt: skip
+api("rl/RLConfig action_penalty=nan", InputError, ("action_penalty", "finite", "nan"),
+    lambda c: RLConfig(action_penalty=float("nan")))  # fmt: skip
+api("rl/RLConfig motion_penalty='high'", InputTypeError, ("motion_penalty", "'high'"),
+    lambda c: RLConfig(motion_penalty="high"))  # fmt: skip
+api("rl/load_steering of a motion model", ValueError, ("amdm", "not a steering policy"),
+    lambda c: load_steering("amdm"))  # fmt: skip
 cli("cli/data download unknown", ("minimdm data download: error:", "'nosuchcorpus'"),
     lambda c: ["data", "download", "nosuchcorpus"])  # fmt: skip
 cli("cli/no command", ("minimdm: error:",), lambda c: [])

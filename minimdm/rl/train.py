@@ -28,6 +28,7 @@ from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
 from minimdm.control.core import ControlModel, as_control_model
 from minimdm.motion.features import encode
+from minimdm.validate import check_number
 
 from .env import LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
 from .policy import PolicyNet, base_identity, resolve_checkpoint
@@ -106,6 +107,8 @@ class RLConfig:
     def __post_init__(self) -> None:
         if self.num_envs < 1 or self.n_steps < 1 or self.total_steps < 1:
             raise ValueError("num_envs, n_steps and total_steps must be >= 1")
+        for name in ("action_penalty", "motion_penalty"):
+            check_number(name, getattr(self, name), low=0.0)
         if (self.num_envs * self.n_steps) % self.batch_size:
             raise ValueError(
                 f"batch_size ({self.batch_size}) must divide num_envs * n_steps "
