@@ -36,6 +36,7 @@ __all__ = [
     "bone_length_error",
     "joint_acceleration",
     "foot_sliding",
+    "contact_weight",
     "foot_penetration",
     "foot_contact_offsets",
     "motion_metrics",
@@ -229,8 +230,13 @@ def foot_sliding(
     h = _foot_heights(x, foot_joints, foot_offset)[..., 1:, :]  # (..., F-1, N)
     feet = x[..., list(foot_joints), :]  # (..., F, N, 3)
     disp = (feet[..., 1:, :, :2] - feet[..., :-1, :, :2]).norm(dim=-1)  # (..., F-1, N)
-    weight = 2 - 2 ** (h / height_threshold).clamp(0, 1)
-    return float((disp * weight).mean() * CM)
+    return float((disp * contact_weight(h, height_threshold)).mean() * CM)
+
+
+def contact_weight(height: Tensor, height_threshold: float = 0.025) -> Tensor:
+    """How much a foot counts as on the ground in :func:`foot_sliding`: :math:`2 -
+    2^{\\mathrm{clip}(h/H, 0, 1)}`, 1 at or below contact height, 0 from ``height_threshold`` up."""
+    return 2 - 2 ** (height / height_threshold).clamp(0, 1)
 
 
 def foot_penetration(

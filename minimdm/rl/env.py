@@ -149,8 +149,7 @@ class _FrameQuality:
 
     def __init__(self, cm: ControlModel, starts: Tensor, n: int) -> None:
         sk, lay = cm.skeleton, cm.layout
-        self.parents = torch.as_tensor(sk.parents)
-        self.child = (self.parents >= 0).nonzero()[:, 0]
+        self.parents = list(sk.parents)
         self.ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents).float()
         self.feet = list(sk.foot_indices)
         self.pos_sl, self.J = lay.joint_pos, lay.n_joints
@@ -171,11 +170,9 @@ class _FrameQuality:
 
     def __call__(self, feats: Tensor, xy: Tensor, heading: Tensor) -> tuple[Tensor, Tensor]:
         p = self._local(feats)
-        bones = (p[:, self.child] - p[:, self.parents[self.child]]).norm(dim=-1)
-        bone = (bones - self.ref).abs().mean(1) * 100
+        bone = (metrics.bone_lengths(p, self.parents).float() - self.ref).abs().mean(1) * 100
         feet = self._feet_world(p, xy, heading)
-        h = p[:, self.feet, 2] - self.z0
-        weight = 2 - 2 ** (h / 0.025).clamp(0, 1)
+        weight = metrics.contact_weight(p[:, self.feet, 2] - self.z0)
         slide = ((feet - self.prev).norm(dim=-1) * weight).mean(1) * 100
         self.prev = feet
         return bone, slide
