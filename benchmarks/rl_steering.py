@@ -4,14 +4,16 @@ Prints one JSON line per measurement (and appends it to ``--out``). Not a test.
 
 * ``curves`` (Fig. 11): learning curves on target reaching for A-MDM steered by residuals and
   the MVAE-style baseline steered through its latent, same task, reward, PPO settings and
-  budget, over seeds; plus two variants of the shipped design (:data:`CURVE_RUNS`): with a
-  motion penalty, and one residual over all 255 features. Each curve's rollouts (return, the task's
+  budget, over seeds; two variants of the shipped design: with a motion penalty, and one
+  residual over all 255 features; and on joystick control, the policy observing the frame's
+  root against the whole frame (:data:`CURVE_RUNS`). Each curve's rollouts (return, the task's
   reward, bone error and foot sliding per frame) go to ``--curves`` for the chapter's plot.
 * ``target``: the same targets for the shipped policy (``rl_target``), chapter 5's beam search
   and chapter 6's inpainting along the straight line to the goal: success within 15 cm, time to
   target, foot sliding, bone error, acceleration and the share of frames stepping backwards.
 * ``joystick``: heading and speed errors against preset commands, the shipped policy
-  (``rl_joystick``) against the unsteered base model.
+  (``rl_joystick``) against the unsteered base model and a hand-written proportional
+  controller on the same residual.
 * ``path`` (Fig. 13): deviation from procedural paths, the shipped policy (``rl_path``)
   against inpainting the same path.
 * ``diversity`` (Fig. 12): runs from one start through the same sequence of targets; how far
@@ -23,12 +25,12 @@ Every method starts from the same state: frame 20 of the held-out take
 beam's candidates); targets, commands and paths are fixed.
 
     python benchmarks/rl_steering.py                        # everything but the curves
-    python benchmarks/rl_steering.py --only curves          # about 45 min on 2 cores
-    # or as two processes of one thread, half the curves each (about 25 min):
+    python benchmarks/rl_steering.py --only curves          # about 70 min on 2 cores
+    # or as two processes of one thread, half the curves each (about 11 min per curve):
     python benchmarks/rl_steering.py --only curves --threads 1 \
-        --curve amdm_residual_root mvae_latent
+        --curve amdm_residual_root mvae_latent joystick_observe_root
     python benchmarks/rl_steering.py --only curves --threads 1 \
-        --curve amdm_residual_root_penalty amdm_residual_all
+        --curve amdm_residual_root_penalty amdm_residual_all joystick_observe_frame
 """
 
 from __future__ import annotations
@@ -110,7 +112,8 @@ def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None 
 
 
 CURVE_RUNS = {
-    # the shipped design (configs/rl_target.yaml): a tied residual on the root
+    # -- target reaching (configs/rl_target.yaml, changed as given) --
+    # the shipped design: a tied residual on the root, the policy observing the whole frame
     "amdm_residual_root": {},
     # Fig. 11's baseline: the MVAE-style model steered through its latent, same reward
     "mvae_latent": {"base": "mvae"},
@@ -123,6 +126,11 @@ CURVE_RUNS = {
         "anneal": "none",
         "residual_scale": 1.0,
     },
+    # -- joystick control (configs/rl_joystick.yaml): what the policy observes --
+    # the shipped design: the frame's root velocity and yaw rate, and the command
+    "joystick_observe_root": {"task": "joystick"},
+    # the paper's: the whole frame (255 numbers), and the command
+    "joystick_observe_frame": {"task": "joystick", "observe": "frame"},
 }
 
 
@@ -136,10 +144,12 @@ def _tail_mean(history: list[dict], key: str) -> float:
 def curves(args) -> None:
     import dataclasses
 
-    base_cfg = load_config(ROOT / "configs" / "rl_target.yaml")
-    for name, change in CURVE_RUNS.items():
+    for name, run in CURVE_RUNS.items():
         if args.curve and name not in args.curve:
             continue
+        change = {k: v for k, v in run.items() if k != "task"}
+        task = run.get("task", "target")
+        base_cfg = load_config(ROOT / "configs" / f"rl_{task}.yaml")
         finals = []
         for seed in range(args.seeds):
             cfg = dataclasses.replace(base_cfg, total_steps=args.budget, seed=seed, **change)
@@ -164,7 +174,7 @@ def curves(args) -> None:
             )
         keys = dict.fromkeys(k for f in finals for k in f)
         finals = [{k: f.get(k, float("nan")) for k in keys} for f in finals]
-        summarize("curves", name, finals, {"budget": args.budget, "task": "target", **change})
+        summarize("curves", name, finals, {"budget": args.budget, "task": task, **change})
 
 
 # --------------------------------------------------------------------------- target reaching
@@ -285,14 +295,43 @@ def commands(n: int, frames: int, seed: int = 0, speed=(0.5, 2.5)):
     )
 
 
+def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0):
+    """A hand-written controller on the joystick policy's own actions, a baseline: the yaw-rate
+    residual turns towards the command in proportion to the heading error (radians), the
+    forward-velocity residual pushes the forward speed towards the commanded one (times the
+    cosine of the error: no push while facing away). The gains are the best of (2, 1), (5, 2),
+    (10, 3) on other commands; the lateral residual stays 0."""
+    features = steering.steerer.features
+    if features not in ("root", "forward"):
+        raise ValueError(f"the controller needs root residuals, got features={features!r}")
+    yaw = 2 if features == "root" else 1
+
+    def act(env) -> torch.Tensor:
+        task, ch = env.task, env.ch
+        err = torch.remainder(task.goal_heading - ch.heading + math.pi, 2 * math.pi) - math.pi
+        facing = torch.stack([torch.cos(ch.heading), torch.sin(ch.heading)], -1)
+        forward = (ch.velocity * facing).sum(-1)
+        a = torch.zeros(env.num_envs, env.single_action_space.shape[0])
+        a[:, yaw] = k_heading * err
+        a[:, 0] = k_speed * (task.goal_speed * torch.cos(err).clamp(min=0) - forward)
+        return a
+
+    return act
+
+
 def joystick(start, ctx, args) -> None:
     pol = load_steering(args.rl_joystick)
     N, F = args.commands, 480
     heading, speed = commands(N, F + 1)
     fps = pol.cm.fps
-    res = {"rl_policy": [], "unsteered": []}
+    runs = {
+        "rl_policy": {},
+        "unsteered": {"zero_policy": True},
+        "p_controller": {"controller": proportional_joystick(pol)},
+    }
+    res = {name: [] for name in runs}
     for seed in range(args.seeds):
-        for name, zero in (("rl_policy", False), ("unsteered", True)):
+        for name, how in runs.items():
             m = steer(
                 pol,
                 F,
@@ -300,7 +339,7 @@ def joystick(start, ctx, args) -> None:
                 starts=start[None],
                 setup=lambda env: env.task.preset(heading, speed),
                 seed=seed,
-                zero_policy=zero,
+                **how,
             )
             he = m.info["heading_error"].abs() * 180 / math.pi
             se = m.info["speed_error"].abs()

@@ -724,6 +724,11 @@ api("rl/RLConfig action_penalty=nan", InputError, ("action_penalty", "finite", "
     lambda c: RLConfig(action_penalty=float("nan")))  # fmt: skip
 api("rl/RLConfig motion_penalty='high'", InputTypeError, ("motion_penalty", "'high'"),
     lambda c: RLConfig(motion_penalty="high"))  # fmt: skip
+api("rl/RLConfig observe='body'", InputError, ("observe", "'frame', 'root'", "'body'"),
+    lambda c: RLConfig(observe="body"))  # fmt: skip
+cli("cli/rl --set observe=all", ("minimdm rl: error:", "observe", "'all'"),
+    lambda c: ["rl", "configs/rl_target.yaml", "--set", "observe=all",
+               "--out", str(c.root / "run")])  # fmt: skip
 api("rl/load_steering of a motion model", ValueError, ("amdm", "not a steering policy"),
     lambda c: load_steering("amdm"))  # fmt: skip
 cli("cli/data download unknown", ("minimdm data download: error:", "'nosuchcorpus'"),

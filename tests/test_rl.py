@@ -286,6 +286,20 @@ def test_one_batched_model_call_per_level_steps_every_character(base, starts):
     assert calls == [7] * 20
 
 
+def test_a_root_observing_env_shows_the_root_velocity_and_yaw_rate_then_the_task(base, starts):
+    cm = as_control_model(base)
+    steer = ResidualSteerer(cm, ResidualSchedule.top(20, 2, tied=True), "root")
+    env = SteeringVecEnv(cm, steer, JoystickTask(), starts, 5, seed=0, observe="root")
+    obs, _ = env.reset(seed=0)
+    lay = cm.layout
+    seen = [lay.root_vel.start, lay.root_vel.start + 1, lay.yaw_rate.start]
+    assert obs.shape == (5, 3 + 4) == env.observation_space.shape
+    assert np.allclose(obs[:, :3], env.x[:, seen].numpy())
+    assert np.allclose(obs[:, 3:], env.task.observe(env.ch).numpy())
+    obs, *_ = env.step(np.zeros((5, 3), np.float32))
+    assert np.allclose(obs[:, :3], env.x[:, seen].numpy())
+
+
 def test_vec_env_restarts_finished_episodes_in_the_same_step(base, starts):
     cm = as_control_model(base)
     steer = ResidualSteerer(cm, ResidualSchedule.top(20, 2), "root")
@@ -432,6 +446,23 @@ def test_a_tied_residual_is_the_same_vector_at_every_chosen_level_weighted_by_w(
     for t, w in zip((9, 7, 5), (3.0, 2.0, 1.0), strict=True):
         assert torch.allclose(added[t], torch.tensor([[w, 0, 0, 0, -2 * w]]))
     assert all(torch.equal(added[t], x) for t in (8, 6, 4, 3, 2, 1, 0))
+
+
+@pytest.mark.parametrize(
+    ("features", "names"),
+    [("root", ["forward", "left", "yaw"]), ("forward", ["forward", "yaw"])],
+)
+def test_root_residuals_push_only_the_roots_velocity_and_yaw_rate(base, features, names):
+    cm = as_control_model(base)
+    lay = cm.layout
+    steer = ResidualSteerer(cm, ResidualSchedule.top(20, 3, tied=True), features)
+    dims = {"forward": lay.root_vel.start, "left": lay.root_vel.start + 1}
+    dims["yaw"] = lay.yaw_rate.start
+    assert steer.action_dim == len(names)
+    hook = residual_hook(steer.schedule, torch.ones(1, len(names)), steer.chain, steer.idx)
+    x = torch.zeros(1, cm.dim)
+    pushed = hook(18, x, x)  # after the step from the noisiest level 19: w = scale * 1
+    assert pushed.nonzero()[:, 1].tolist() == sorted(dims[n] for n in names)
 
 
 @pytest.mark.parametrize("name", ["rl_target", "rl_joystick", "rl_path", "rl_target_mvae"])

@@ -13,7 +13,8 @@ The root is integrated from the new frame's velocity and yaw rate (as
 :func:`minimdm.motion.features.decode_root` does), the task scores it, and finished episodes
 restart at once from a random corpus frame (gymnasium's same-step autoreset: the last
 observation is in ``infos["final_obs"]``). The observation is the current frame followed by the
-task observation. :class:`SteeringEnv` is the single-character view that gymnasium's
+task observation (or, with ``observe="root"``, only the frame's root velocity and yaw rate then
+the task observation). :class:`SteeringEnv` is the single-character view that gymnasium's
 environment checker and the chapter's live widget use.
 """
 
@@ -44,7 +45,12 @@ __all__ = [
     "SteeringVecEnv",
     "SteeringEnv",
     "check_actions",
+    "OBSERVATIONS",
 ]
+
+OBSERVATIONS = ("frame", "root")
+"""What a policy sees of the character besides its task: the whole current frame (the paper's
+choice, D numbers) or only its root velocity and yaw rate (3 numbers)."""
 
 
 def check_actions(actions: Any, n: int, dim: int) -> Tensor:
@@ -194,8 +200,13 @@ class SteeringVecEnv(VectorEnv):
             error plus foot sliding (the quality measures of A-MDM eq. 11 and §7, computed on
             the one frame): the policy pays for frames that leave the data. Needs the base
             model's skeleton (checkpoints carry it).
+        observe: ``"frame"``: the policy sees the whole current frame (normalized), as in the
+            paper; ``"root"``: only the frame's root velocity and yaw rate (normalized). With
+            the whole frame, PPO within the book's budget mostly learned from the body's 255
+            numbers and barely from the 4 to 10 that state the task (chapter 7 measures it).
 
-    Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's.
+    Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's;
+    (N, 3 + task.obs_dim) with ``observe="root"``.
     Action: (N, A) float32 in [-1, 1].
     """
 
@@ -211,7 +222,10 @@ class SteeringVecEnv(VectorEnv):
         seed: int = 0,
         action_penalty: float = 0.0,
         motion_penalty: float = 0.0,
+        observe: str = "frame",
     ) -> None:
+        if observe not in OBSERVATIONS:
+            raise ValueError(f"observe must be one of {OBSERVATIONS}, got {observe!r}")
         starts = torch.as_tensor(starts, dtype=torch.float32)
         D = cm.dim
         if starts.dim() != 2 or starts.shape[1] != D or len(starts) == 0:
@@ -228,7 +242,14 @@ class SteeringVecEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
         self.task.setup(self.num_envs, self.generator)
-        obs_dim = D + task.obs_dim
+        self.observe = observe
+        self._seen: list[int] | None = None  # the frame dimensions the policy sees (None: all)
+        if observe == "root":
+            if cm.layout is None:
+                raise ValueError('observe="root" needs a base model with a feature layout')
+            vel = cm.layout.root_vel
+            self._seen = [*range(vel.start, vel.stop), cm.layout.yaw_rate.start]
+        obs_dim = (D if self._seen is None else len(self._seen)) + task.obs_dim
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         self.single_action_space = gym.spaces.Box(-1.0, 1.0, (steerer.action_dim,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -269,7 +290,8 @@ class SteeringVecEnv(VectorEnv):
         return world * self.cm.fps, yaw
 
     def _obs(self) -> np.ndarray:
-        obs = torch.cat([self.x.float().cpu(), self.task.observe(self.ch)], dim=1)
+        x = self.x if self._seen is None else self.x[:, self._seen]
+        obs = torch.cat([x.float().cpu(), self.task.observe(self.ch)], dim=1)
         return obs.numpy().astype(np.float32)
 
     # -- gymnasium API --------------------------------------------------------------------

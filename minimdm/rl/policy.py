@@ -75,6 +75,8 @@ class Steering:
     task: Task
     checkpoint: Checkpoint
     """The policy's checkpoint (its metadata: config, command, training log summary)."""
+    observe: str = "frame"
+    """What the policy sees besides the task (:class:`~minimdm.rl.env.SteeringVecEnv`)."""
 
 
 def load_steering(
@@ -118,4 +120,5 @@ def load_steering(
     for k, v in list(opts.items()):
         if isinstance(v, list):
             opts[k] = tuple(v)
-    return Steering(pc.model, cm, steerer, make_task(trained_task, **opts), pc)
+    observe = meta.get("config", {}).get("observe", "frame")
+    return Steering(pc.model, cm, steerer, make_task(trained_task, **opts), pc, observe)

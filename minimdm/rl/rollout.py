@@ -57,6 +57,7 @@ def steer(
     deterministic: bool = True,
     zero_policy: bool = False,
     progress: bool = False,
+    controller: Callable[[SteeringVecEnv], Tensor] | None = None,
 ) -> SteeredMotion:
     """Roll ``num_envs`` characters out for ``n_frames`` frames under a trained policy.
 
@@ -72,12 +73,16 @@ def steer(
         deterministic: act with the policy's mean (True) or sample from its Gaussian.
         zero_policy: act with zero residuals (the base model unsteered) -- a baseline.
         progress: tqdm bar over frames.
+        controller: ``controller(env) -> actions (N, A)`` acts instead of the policy, e.g. a
+            hand-written controller on the same actions -- a baseline.
     """
     from minimdm.rl.train import corpus_starts
 
     cm, pol = steering.cm, steering.policy
     pool = starts if starts is not None else corpus_starts(_base_of(steering), "train")
-    env = SteeringVecEnv(cm, steering.steerer, steering.task, pool, num_envs, seed)
+    env = SteeringVecEnv(
+        cm, steering.steerer, steering.task, pool, num_envs, seed, observe=steering.observe
+    )
     env.reset(seed=seed)
     if starts is not None:
         rows = torch.arange(num_envs) % len(starts)
@@ -94,6 +99,8 @@ def steer(
         obs = torch.as_tensor(env._obs())
         if zero_policy:
             a = torch.zeros(num_envs, env.single_action_space.shape[0])
+        elif controller is not None:
+            a = controller(env).float().clamp(-1.0, 1.0)
         else:
             a = pol.act(obs, deterministic, gen)
         x, prev = env.advance(a)

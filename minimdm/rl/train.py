@@ -28,9 +28,9 @@ from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
 from minimdm.control.core import ControlModel, as_control_model
 from minimdm.motion.features import encode
-from minimdm.validate import check_number
+from minimdm.validate import check_choice, check_number
 
-from .env import LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
+from .env import OBSERVATIONS, LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
 from .policy import PolicyNet, base_identity, resolve_checkpoint
 from .residual import ResidualSchedule
 from .tasks import make_task
@@ -69,7 +69,8 @@ class RLConfig:
     residual_scale: float = 1.0
     """A-MDM: :math:`w^t` at the noisiest perturbed level, in normalized feature units."""
     features: str = "all"
-    """A-MDM: residuals on ``all`` features or on the ``root`` velocity and yaw rate."""
+    """A-MDM: residuals on ``all`` features, the ``root`` velocity and yaw rate, or the
+    ``forward`` velocity and yaw rate (see :func:`~minimdm.rl.residual.feature_indices`)."""
     tied: bool = False
     """A-MDM: one residual for every perturbed step (True) or one per step (the paper)."""
     latent_scale: float = 2.0
@@ -79,6 +80,9 @@ class RLConfig:
     motion_penalty: float = 0.0
     """Reward minus this per cm of the frame's bone length error plus foot sliding (stay on
     the data; see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
+    observe: str = "frame"
+    """What the policy sees besides the task: the whole current ``frame`` or only its ``root``
+    velocity and yaw rate (see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
     num_envs: int = 64
     """Characters stepped together (one batched model call)."""
     total_steps: int = 1_000_000
@@ -109,6 +113,7 @@ class RLConfig:
             raise ValueError("num_envs, n_steps and total_steps must be >= 1")
         for name in ("action_penalty", "motion_penalty"):
             check_number(name, getattr(self, name), low=0.0)
+        check_choice("observe", self.observe, OBSERVATIONS)
         if (self.num_envs * self.n_steps) % self.batch_size:
             raise ValueError(
                 f"batch_size ({self.batch_size}) must divide num_envs * n_steps "
@@ -173,6 +178,7 @@ def build_env(
         config.seed if seed is None else seed,
         action_penalty=config.action_penalty,
         motion_penalty=config.motion_penalty,
+        observe=config.observe,
     )
 
 
