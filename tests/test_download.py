@@ -230,6 +230,28 @@ def test_an_interrupted_extraction_leaves_nothing_complete(home, tmp_path, monke
     _assert_whole(download_corpus("tiny", progress=False))
 
 
+def test_a_corpus_unpacked_meanwhile_by_another_process_is_kept(home, tmp_path, monkeypatch):
+    # two processes start on a new machine: both find no corpus and unpack it; the second must
+    # not delete the folder the first one finished (and may be reading)
+    src = tmp_path / "mirror.zip"
+    src.write_bytes(ZIP)
+    target = home / "tiny"
+    real = download._extract_zip
+
+    def other_process_finishes_first(archive, out):
+        real(archive, out)
+        monkeypatch.setattr(download, "_extract_zip", real)
+        download.unpack(src, target, member=MEMBER, stamp="first")
+        (target / "opened.bvh").write_text("in use")
+
+    monkeypatch.setattr(download, "_extract_zip", other_process_finishes_first)
+    assert download.unpack(src, target, member=MEMBER, stamp="second") == target
+    assert (target / "opened.bvh").read_text() == "in use"
+    assert (target / download.DONE).read_text() == "first\n"
+    assert {p.name for p in target.glob("*.bvh")} == set(TAKES) | {"opened.bvh"}
+    assert not [p for p in home.iterdir() if p.name.startswith(".")]
+
+
 @pytest.mark.parametrize("kind", ["zip", "tar.gz"])
 def test_members_escaping_the_folder_are_refused(home, tmp_path, kind):
     members = {"tiny/a.bvh": b"ok", "tiny/../../evil.bvh": b"bad"}

@@ -215,9 +215,15 @@ def unpack(archive: str | Path, target: str | Path, member: str = "", stamp: str
         if not src.is_dir():
             raise DownloadError(f"{archive.name} holds no folder {member!r}")
         (src / DONE).write_text(stamp + "\n")
+        if (target / DONE).exists():  # another process unpacked it meanwhile: keep theirs,
+            return target  # it may be reading it (two benchmark processes on a new machine)
         if target.exists():  # a partial folder from an earlier, interrupted attempt
             shutil.rmtree(target)
-        os.replace(src, target)  # atomic: the folder appears whole, marker included
+        try:
+            os.replace(src, target)  # atomic: the folder appears whole, marker included
+        except OSError:
+            if not (target / DONE).exists():  # not a race lost to another process
+                raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return target
