@@ -302,9 +302,8 @@ def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0
     cosine of the error: no push while facing away). The gains are the best of (2, 1), (5, 2),
     (10, 3) on other commands; the lateral residual stays 0."""
     features = steering.steerer.features
-    if features not in ("root", "forward"):
+    if features != "root":
         raise ValueError(f"the controller needs root residuals, got features={features!r}")
-    yaw = 2 if features == "root" else 1
 
     def act(env) -> torch.Tensor:
         task, ch = env.task, env.ch
@@ -312,7 +311,7 @@ def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0
         facing = torch.stack([torch.cos(ch.heading), torch.sin(ch.heading)], -1)
         forward = (ch.velocity * facing).sum(-1)
         a = torch.zeros(env.num_envs, env.single_action_space.shape[0])
-        a[:, yaw] = k_heading * err
+        a[:, 2] = k_heading * err  # (forward, left, yaw)
         a[:, 0] = k_speed * (task.goal_speed * torch.cos(err).clamp(min=0) - forward)
         return a
 

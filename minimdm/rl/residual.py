@@ -36,18 +36,14 @@ def feature_indices(layout: FeatureLayout, features: str) -> list[int]:
     """The frame dimensions a residual acts on.
 
     ``"all"``: every feature (the paper's full residual, D per step); ``"root"``: the root's
-    planar velocity and yaw rate (3 per step); ``"forward"``: the root's forward velocity and
-    yaw rate (2 per step: a throttle and a wheel, no sideways push). With ``"root"`` or
-    ``"forward"`` the policy pushes where the root goes and the remaining denoising steps make a
-    body that fits it.
+    planar velocity and yaw rate (3 per step: forward, left, yaw). With ``"root"`` the policy
+    pushes where the root goes and the remaining denoising steps make a body that fits it.
     """
     if features == "all":
         return list(range(layout.dim))
     if features == "root":
         return [*range(layout.root_vel.start, layout.root_vel.stop), layout.yaw_rate.start]
-    if features == "forward":
-        return [layout.root_vel.start, layout.yaw_rate.start]
-    raise ValueError(f"features must be 'all', 'root' or 'forward', got {features!r}")
+    raise ValueError(f"features must be 'all' or 'root', got {features!r}")
 
 
 @dataclass(frozen=True)
