@@ -34,7 +34,7 @@ trails), :mod:`~minimdm.viz.render` (the pyvista and matplotlib renderers),
 :mod:`~minimdm.viz.animation` (:func:`animate`, :func:`render_frame`, GIF/MP4 files),
 :mod:`~minimdm.viz.plots` (:func:`filmstrip`, :func:`scrubber`, :func:`plot_trajectories`),
 :mod:`~minimdm.viz.payload` (the player's checked, compact payload) and
-:mod:`~minimdm.viz.player` (:func:`player`; its JavaScript is in ``static/``).
+:mod:`~minimdm.viz.webplayer` (:func:`player`; its JavaScript is in ``static/``).
 """
 
 import os
@@ -47,11 +47,11 @@ os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 # Module state (``_PYVISTA_ERROR``) and ``_PyvistaRenderer`` live in :mod:`.render`: read or
 # patch them there (``viz.render._PYVISTA_ERROR``); a copy here would not follow them.
 from .animation import Animation, animate, render_frame  # noqa: E402
-from .player import Player, player  # noqa: E402
 from .plots import filmstrip, plot_trajectories, scrubber  # noqa: E402
 from .render import _render as _render  # noqa: E402
 from .scene import GENERATED, PALETTE, REAL, TARGET  # noqa: E402
 from .scene import _build_scene as _build_scene  # noqa: E402
+from .webplayer import Player, player  # noqa: E402
 
 __all__ = [
     "REAL",
