@@ -160,6 +160,7 @@ BAD = [
      {"keyframes": ([30], walk()[:1])}), r"keyframes frames must lie in \[0, 30\)"),
     ("keyframe shape", lambda: (walk(), PARENTS, {"keyframes": np.zeros((2, 4, 3))}),
      r"\(K, 5, 3\)"),
+    ("no keyframes", lambda: (walk(), PARENTS, {"keyframes": np.zeros((0, 5, 3))}), "K >= 1"),
     ("contacts shape", lambda: (walk(), skeleton5(), {"contacts": [np.zeros((29, 2))]}),
      r"contacts\[0\] must have shape"),
     ("foot name", lambda: (walk(), skeleton5(), {"feet": ["toe"]}), "feet names joint 'toe'"),

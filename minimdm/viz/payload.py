@@ -232,8 +232,10 @@ def _keyframes(name: str, value: Any, J: int, T: int) -> dict[str, Any]:
     x = _array(f"{name} poses", poses)
     if x.ndim == 2:
         x = x[None]
-    if x.ndim != 3 or x.shape[1:] != (J, 3):
-        raise InputError(f"{name} must be poses of shape (K, {J}, 3), got {tuple(x.shape)}")
+    if x.ndim != 3 or x.shape[1:] != (J, 3) or len(x) == 0:
+        raise InputError(
+            f"{name} must be poses of shape (K, {J}, 3) with K >= 1, got {tuple(x.shape)}"
+        )
     _finite(name, x)
     out: dict[str, Any] = {"poses": np.round(x, 4).reshape(len(x), -1).tolist()}
     if frames is not None:

@@ -238,6 +238,13 @@ export async function mount(container, payload) {
   const box = new THREE.Box3();
   const v = new THREE.Vector3();
   motions.forEach((pos) => { for (let i = 0; i < pos.length; i += 3) box.expandByPoint(v.fromArray(pos, i)); });
+  // targets, paths and keyframes: index -1 belongs to every character (each lane, side by side)
+  const lanes = (s) => (s.motion >= 0 ? [s.motion] : n > 1 && payload.layout === "side" ? [...Array(n).keys()] : [-1]);
+  const offsetOf = (i) => (i >= 0 ? payload.motions[i].offset : [0, 0, 0]);
+  (payload.shapes || []).forEach((s) => lanes(s).forEach((i) => {
+    const flat = s.kind === "keyframes" ? s.poses.flat() : s.points.flat();
+    for (let k = 0; k < flat.length; k += 3) box.expandByPoint(toThree(flat.slice(k, k + 3), offsetOf(i)));
+  }));
   const bl = [];
   parents.forEach((p, j) => {
     if (p >= 0) bl.push(v.fromArray(motions[0], 3 * j).distanceTo(new THREE.Vector3().fromArray(motions[0], 3 * p)));
@@ -271,12 +278,12 @@ export async function mount(container, payload) {
   const camera = new THREE.PerspectiveCamera(35, 1, 0.02, 1000);
 
   // lights: sky/ground fill and one sun that casts the shadows, sized to the scene
-  scene.add(new THREE.HemisphereLight(0xffffff, 0x9a9a9a, 1.9));
-  const sun = new THREE.DirectionalLight(0xffffff, 2.0);
+  scene.add(new THREE.HemisphereLight(0xffffff, 0x9a9a9a, 1.5));
+  const sun = new THREE.DirectionalLight(0xffffff, 2.6);
   const centre = box.getCenter(new THREE.Vector3());
   const size = box.getSize(new THREE.Vector3());
   const reach = Math.max(size.x, size.z) / 2 + 2;
-  sun.position.set(centre.x + 0.6 * reach, 2.2 * reach + 3, centre.z + 0.9 * reach);
+  sun.position.set(centre.x + 0.8 * reach + 1, 1.6 * reach + 3, centre.z + 1.0 * reach + 1);
   sun.target.position.set(centre.x, 0, centre.z);
   sun.castShadow = true;
   sun.shadow.mapSize.set(2048, 2048);
@@ -328,10 +335,8 @@ export async function mount(container, payload) {
     labels.push(lab);
   });
 
-  // targets, target paths and keyframes; index -1 belongs to every character (each lane)
+  // targets (a sphere over a ring), target paths (dashed) and keyframes (ghost poses)
   const TARGET = 0xd62728;
-  const lanes = (s) => (s.motion >= 0 ? [s.motion] : n > 1 && payload.layout === "side" ? [...Array(n).keys()] : [-1]);
-  const offsetOf = (i) => (i >= 0 ? payload.motions[i].offset : [0, 0, 0]);
   const ghosts = [];
   const targetMat = new THREE.MeshStandardMaterial({ color: TARGET, roughness: 0.4, emissive: 0x400000 });
   const ringGeo = new THREE.RingGeometry(0.12, 0.17, 32).rotateX(-Math.PI / 2);
@@ -346,7 +351,6 @@ export async function mount(container, payload) {
           ring.position.set(q.x, 0.004, q.z); scene.add(ring);
           const ball = new THREE.Mesh(new THREE.SphereGeometry(0.07, 20, 14), targetMat);
           ball.position.set(q.x, Math.max(q.y, 0.07), q.z); ball.castShadow = true; scene.add(ball);
-          box.expandByPoint(q);
         });
       } else if (s.kind === "path") {
         const pts = s.points.map((p) => { const q = toThree(p, off); q.y = Math.max(q.y, 0.005); return q; });
@@ -397,11 +401,29 @@ export async function mount(container, payload) {
     const dir = toThree([Math.cos(el_) * Math.cos(az), Math.cos(el_) * Math.sin(az), Math.sin(el_)]);
     orbit.theta = Math.atan2(dir.x, dir.z);
     orbit.phi = Math.acos(Math.min(Math.max(dir.y, -1), 1));
-    const tan = Math.tan((camera.fov * Math.PI) / 360);
-    const halfH = 0.62 * size.y + 0.2;
-    const halfW = (follow ? spread : Math.hypot(size.x, size.z) / 2) + 0.3;
-    orbit.radius = Math.max(halfH / tan, halfW / (tan * camera.aspect));
     orbit.target.copy(follow ? smooth[frame] : new THREE.Vector3(centre.x, 0.45 * size.y + box.min.y, centre.z));
+    // the nearest camera that shows all of the box (every frame, or the characters' reach
+    // about the followed point): bisect between a sphere's fit, which always shows it, and 0
+    const shown = follow
+      ? new THREE.Box3(new THREE.Vector3(-spread, box.min.y, -spread).add(orbit.target).setY(box.min.y),
+          new THREE.Vector3(spread, 0, spread).add(orbit.target).setY(box.max.y))
+      : box;
+    const half = Math.atan(Math.tan((camera.fov * Math.PI) / 360) * Math.min(1, camera.aspect));
+    const corners = [0, 1, 2, 3, 4, 5, 6, 7].map((c) => new THREE.Vector3(
+      c & 1 ? shown.max.x : shown.min.x, c & 2 ? shown.max.y : shown.min.y, c & 4 ? shown.max.z : shown.min.z));
+    const fits = (d) => {
+      orbit.radius = d;
+      orbit.update();
+      camera.updateMatrixWorld();
+      return corners.every((c) => {
+        const q = c.clone().project(camera);
+        return q.z < 1 && Math.abs(q.x) < 0.94 && q.y > -0.94 && q.y < 0.8; // room for labels
+      });
+    };
+    let lo = 0.3, hi = (shown.getBoundingSphere(new THREE.Sphere()).radius + 0.3) / Math.sin(half);
+    if (!fits(hi)) hi *= 1.5;
+    for (let k = 0; k < 20; k++) { const mid = (lo + hi) / 2; if (fits(mid)) hi = mid; else lo = mid; }
+    orbit.radius = hi;
     orbit.update();
   };
 
@@ -417,7 +439,7 @@ export async function mount(container, payload) {
   followLabel.append(" follow");
   const resetBtn = el("button", { type: "button", textContent: "⟲", title: "reset the view (double-click)" }, bar);
 
-  let frame = 0, playing = false, clock = 0, lastTime = null, dirty = true, visible = true;
+  let frame = 0, playing = false, clock = 0, lastTime = null, dirty = false, visible = true;
   const aspectFix = () => {
     const w = stage.clientWidth || width, h = Math.round(w * aspect);
     stage.style.height = `${h}px`;
@@ -465,6 +487,18 @@ export async function mount(container, payload) {
       labels[i].style.left = `${((p.x + 1) / 2) * w}px`;
       labels[i].style.top = `${((1 - p.y) / 2) * h}px`;
       labels[i].style.visibility = p.z < 1 ? "visible" : "hidden";
+    });
+    // labels that would overlap stack upwards, so each stays readable
+    const placed = [];
+    labels.forEach((lab) => {
+      if (lab.style.display === "none") return;
+      let x = parseFloat(lab.style.left), y = parseFloat(lab.style.top);
+      const w = lab.offsetWidth, h = lab.offsetHeight;
+      for (const q of placed) {
+        if (Math.abs(q.x - x) < (q.w + w) / 2 + 2 && Math.abs(q.y - y) < h + 1) y = q.y - h - 2;
+      }
+      lab.style.top = `${y}px`;
+      placed.push({ x, y, w });
     });
   }
 
