@@ -202,7 +202,7 @@ def payload_in(html):
 @pytest.fixture
 def fresh_kernel(monkeypatch):
     """A kernel that has shown no player yet; ``where`` sets the (cell, count) being run."""
-    state = {"embedded": False, "cell": None, "count": None, "hooked": True}
+    state = {"embedded": False, "cell": None, "count": None}
     monkeypatch.setattr(pmod, "_KERNEL", state)
     where = {"now": (None, None)}
     monkeypatch.setattr(pmod, "_where", lambda: where["now"])
@@ -251,3 +251,23 @@ def test_poster_is_a_small_png_and_save_stands_alone(tmp_path):
     assert 'class="mmp-poster"' in page
     with pytest.raises(ValueError, match="must end in .html"):
         p.save(tmp_path / "p.png")
+
+
+def test_in_an_ipython_shell_a_rerun_of_the_first_cell_carries_the_code_again(monkeypatch):
+    from IPython.core.interactiveshell import InteractiveShell
+
+    monkeypatch.setattr(pmod, "_KERNEL", {"embedded": False, "cell": None, "count": None})
+    shell = InteractiveShell.instance()
+    try:
+        outputs = []
+        monkeypatch.setattr(shell.display_pub, "publish", lambda data, **kw: outputs.append(data))
+        shell.user_ns.update(viz=viz, x=walk(), P=PARENTS)
+        code = "display(viz.player(x, P, poster=False)); display(viz.player(x, P, poster=False))"
+        carried = {}
+        for run, cell in enumerate(["a", "a", "b", "a"]):
+            outputs.clear()
+            assert shell.run_cell(code, cell_id=cell, store_history=True).success
+            carried[run] = [lib_in(o["text/html"]) is not None for o in outputs]
+        assert carried == {0: [True, False], 1: [True, False], 2: [False, False], 3: [True, False]}
+    finally:
+        InteractiveShell.clear_instance()

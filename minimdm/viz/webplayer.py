@@ -59,11 +59,13 @@ def _library() -> tuple[str, dict[str, str]]:
     return key, {"three": _b64gz(src["three.module.min"]), "player": _b64gz(src["player"])}
 
 
-_KERNEL: dict[str, Any] = {"embedded": False, "cell": None, "count": None, "hooked": False}
+_KERNEL: dict[str, Any] = {"embedded": False, "cell": None, "count": None}
 
 
 def _where() -> tuple[str | None, int | None]:
-    """(cell id, execution count) of the running IPython cell, or (None, None) outside IPython."""
+    """(cell id, execution count) of the running IPython cell, or (None, None) outside IPython.
+
+    The cell id is the front end's (JupyterLab sends one with every execution request)."""
     try:
         from IPython import get_ipython
     except ImportError:  # pragma: no cover - IPython is a dependency of ipywidgets
@@ -71,14 +73,9 @@ def _where() -> tuple[str | None, int | None]:
     ip = get_ipython()
     if ip is None:
         return None, None
-    if not _KERNEL["hooked"]:
-
-        def remember(info: Any) -> None:
-            _KERNEL["current_cell"] = getattr(info, "cell_id", None)
-
-        ip.events.register("pre_run_cell", remember)
-        _KERNEL["hooked"] = True
-    return _KERNEL.get("current_cell"), getattr(ip, "execution_count", None)
+    result = getattr(getattr(ip, "displayhook", None), "exec_result", None)
+    cell = getattr(getattr(result, "info", None), "cell_id", None)
+    return cell, getattr(ip, "execution_count", None)
 
 
 def _take_embed() -> bool:
