@@ -15,6 +15,9 @@ parent ``-1``) ground projection is the trail, and the camera follows it.
   still frames in a matplotlib figure (the static figure beside a widget).
 * :func:`scrubber` is an ipywidgets frame scrubber (Play + slider) for live kernels.
 * :func:`plot_trajectories` draws top-down root paths of several runs, with optional targets.
+* :func:`player` is a 3D player (three.js) as one HTML output: turn, zoom, play, scrub and
+  compare characters, in a live kernel and in the static book alike, offline; its payload
+  (:mod:`~minimdm.viz.payload`) stores positions as gzipped int16 codes.
 
 Rendering uses pyvista off-screen (EGL, no display needed): one bone ``PolyData`` per character
 feeds a tube filter and a sphere glyph, and only its points change from frame to frame. If
@@ -28,8 +31,10 @@ colour, or the words ``"real"``, ``"generated"`` and ``"target"``, can be passed
 
 The package splits by concern: :mod:`~minimdm.viz.scene` (input checks, colours, camera and
 trails), :mod:`~minimdm.viz.render` (the pyvista and matplotlib renderers),
-:mod:`~minimdm.viz.animation` (:func:`animate`, :func:`render_frame`, GIF/MP4 files) and
-:mod:`~minimdm.viz.plots` (:func:`filmstrip`, :func:`scrubber`, :func:`plot_trajectories`).
+:mod:`~minimdm.viz.animation` (:func:`animate`, :func:`render_frame`, GIF/MP4 files),
+:mod:`~minimdm.viz.plots` (:func:`filmstrip`, :func:`scrubber`, :func:`plot_trajectories`),
+:mod:`~minimdm.viz.payload` (the player's checked, compact payload) and
+:mod:`~minimdm.viz.webplayer` (:func:`player`; its JavaScript is in ``static/``).
 """
 
 import os
@@ -46,6 +51,7 @@ from .plots import filmstrip, plot_trajectories, scrubber  # noqa: E402
 from .render import _render as _render  # noqa: E402
 from .scene import GENERATED, PALETTE, REAL, TARGET  # noqa: E402
 from .scene import _build_scene as _build_scene  # noqa: E402
+from .webplayer import Player, player  # noqa: E402
 
 __all__ = [
     "REAL",
@@ -58,4 +64,6 @@ __all__ = [
     "filmstrip",
     "scrubber",
     "plot_trajectories",
+    "Player",
+    "player",
 ]

@@ -1,0 +1,269 @@
+"""The book and the 3D player in a real browser: Debian's Chromium, driven by Playwright, offline.
+
+The test builds the real book (into a temporary folder) and adds a page with two players made
+by :func:`minimdm.viz.player`, serves the folder on 127.0.0.1 and checks, on every page: no
+console error, no request outside the book (requests elsewhere are blocked and recorded), and
+rendered maths (``mjx-container`` elements, no raw ``\\(``) on the chapters. On the player page:
+the canvases are not blank, scrubbing or turning one player changes its picture and not the
+other's, and a page holding only a later player (no code of its own) still works from the copy
+the first one left in the browser.
+
+It needs Chromium (``apt-get install -y chromium``; Playwright's own browser download is never
+used) and is skipped without it, except in CI (``CI=true``), where it fails instead.
+Set ``MINIMDM_SCREENSHOTS=folder`` to keep screenshots of the pages it looked at.
+"""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import io
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = ("/usr/bin/chromium", "/usr/bin/chromium-browser")
+ARGS = [
+    "--no-sandbox",  # CI runs as root
+    "--use-angle=swiftshader",  # WebGL on the CPU: no GPU, no display
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",  # and no network of its own
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-default-apps",
+    "--disable-extensions",
+    "--no-first-run",
+]
+
+
+def _unavailable(why: str) -> None:
+    msg = (
+        f"{why}: install Chromium with `apt-get install -y chromium` (and `pip install playwright`)"
+    )
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(f"CI must run the browser test, but {msg}")
+    pytest.skip(msg)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    exe = next((p for p in CHROMIUM if Path(p).exists()), shutil.which("chromium"))
+    if exe is None:
+        _unavailable("no Chromium found")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        _unavailable("Playwright is not installed")
+    with sync_playwright() as pw:
+        # launch() starts from a fresh, temporary profile each time
+        b = pw.chromium.launch(executable_path=exe, headless=True, args=ARGS)
+        yield b
+        b.close()
+
+
+def two_players() -> tuple[str, str]:
+    """Two players of real motion: two walks side by side, and a run with keyframes."""
+    from minimdm import viz
+    from minimdm.motion.corpora import load_corpus
+
+    corpus = load_corpus("bandai-namco-1")
+    sk = corpus["dataset-1_walk_normal_001"].skeleton  # offsets differ by take; parents do not
+    a, b = (corpus[f"dataset-1_walk_{s}_001"].positions[:90] for s in ("normal", "happy"))
+    run = corpus["dataset-1_run_normal_001"].positions  # 24 frames
+    first = viz.player(
+        [a, b], sk, labels=["normal", "happy"], targets=[[2.5, 0.0]], autoplay=False, embed=True
+    )
+    second = viz.player(
+        run,
+        sk,
+        labels=["run"],
+        layout="overlay",
+        keyframes={"frames": [len(run) - 1], "poses": run[-1:]},
+        paths=run[:, 0, :2],
+        follow=True,
+        autoplay=False,
+        embed=False,  # waits for the first one's code
+    )
+    return first._repr_html_(), second._repr_html_()
+
+
+def page(title: str, body: str) -> str:
+    return (
+        f'<!DOCTYPE html><html><head><meta charset="utf-8"><title>{title}</title></head>'
+        '<body style="font-family:sans-serif;max-width:720px;margin:16px auto">'
+        f"{body}</body></html>"
+    )
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The built book plus two player pages, served on 127.0.0.1; yields (base URL, folder)."""
+    out = tmp_path_factory.mktemp("book")
+    jb = shutil.which("jupyter-book") or str(Path(sys.executable).with_name("jupyter-book"))
+    if not Path(jb).exists():
+        _unavailable("jupyter-book is not installed (pip install -e '.[book]')")
+    run = subprocess.run(
+        [jb, "build", str(ROOT / "book"), "--path-output", str(out), "--warningiserror"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    html = out / "_build" / "html"
+    first, second = two_players()
+    (html / "players.html").write_text(page("players", f"<h1>Players</h1>{first}{second}"))
+    (html / "later_only.html").write_text(page("later only", second))
+    handler = functools.partial(Quiet, directory=str(html))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    yield f"http://127.0.0.1:{server.server_address[1]}/", html
+    server.shutdown()
+
+
+class Quiet(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+class Visit:
+    """A page in a fresh browser context: console errors and requests outside the site."""
+
+    def __init__(self, browser, base: str, context=None):
+        self.base, self.errors, self.outside = base, [], []
+        self.context = context or browser.new_context(viewport={"width": 1000, "height": 900})
+        self.context.route("**/*", self._route)
+        self.page = self.context.new_page()
+        self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
+        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
+        self.page.on("requestfailed", lambda r: self.errors.append(f"{r.failure}: {r.url}"))
+
+    def _route(self, route):
+        url = route.request.url
+        if url.startswith((self.base, "blob:", "data:")):
+            route.continue_()
+        else:
+            self.outside.append(url)
+            route.abort()
+
+    def open(self, path: str):
+        self.page.goto(self.base + path, wait_until="load")
+        return self.page
+
+    def check_clean(self):
+        assert self.outside == [], f"requests outside the book: {self.outside}"
+        assert self.errors == [], f"console errors: {self.errors}"
+
+
+def shot(locator) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(locator.screenshot())).convert("L"), dtype=float)
+
+
+def keep(page, name: str, full_page: bool = True) -> None:
+    folder = os.environ.get("MINIMDM_SCREENSHOTS")
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(Path(folder) / f"{name}.png"), full_page=full_page)
+
+
+def settle(page) -> None:
+    """Wait for two animation frames, so that what was asked is drawn."""
+    page.evaluate("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
+
+def test_two_players_on_one_page(browser, site):
+    base, _ = site
+    v = Visit(browser, base)
+    p = v.open("players.html")
+    p.wait_for_function(
+        "document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === 2",
+        timeout=30_000,
+    )
+    players = p.locator(".minimdm-player")
+    assert players.locator(".mmp-poster").count() == 0  # the posters gave way to the canvases
+    a, b = (players.nth(i).locator("canvas") for i in (0, 1))
+
+    def scrub(i: int, frame: int) -> None:
+        players.nth(i).locator("input[type=range]").evaluate(
+            "(s, f) => { s.value = f; s.dispatchEvent(new Event('input', {bubbles: true})); }",
+            frame,
+        )
+        p.wait_for_function(
+            f"document.querySelectorAll('.minimdm-player')[{i}].dataset.frame === '{frame}'"
+        )
+        settle(p)
+
+    scrub(0, 0)
+    scrub(1, 0)
+    a0, b0 = shot(a), shot(b)
+    for img in (a0, b0):  # not blank: skeletons, grid and shadows on the ground
+        assert img.std() > 8, img.std()
+    keep(p, "players")
+    scrub(0, 60)
+    a1, b1 = shot(a), shot(b)
+    assert np.abs(a1 - a0).mean() > 0.5  # the picture moved ...
+    assert np.abs(b1 - b0).mean() < 0.05  # ... in the player scrubbed, not in the other
+    assert players.nth(0).locator(".mmp-time").inner_text().startswith("61 / 90")
+    box = b.bounding_box()  # turn the second player by dragging
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    p.mouse.move(cx, cy)
+    p.mouse.down()
+    p.mouse.move(cx + 120, cy + 10, steps=5)
+    p.mouse.up()
+    settle(p)
+    assert np.abs(shot(b) - b1).mean() > 0.5
+    assert np.abs(shot(a) - a1).mean() < 0.05
+    players.nth(1).locator("button[title^='play']").click()  # and it plays
+    p.wait_for_function("document.querySelectorAll('.minimdm-player')[1].dataset.frame !== '0'")
+    v.check_clean()
+    # a page holding only the later player: no code of its own, so it takes the copy that the
+    # first player left in this browser's localStorage
+    later = v.context.new_page()
+    later.goto(base + "later_only.html")
+    later.wait_for_selector(".minimdm-player[data-ready='1']", timeout=30_000)
+    v.check_clean()
+    v.context.close()
+
+
+def test_later_player_alone_in_a_new_browser_keeps_its_poster(browser, site):
+    base, _ = site
+    v = Visit(browser, base)
+    p = v.open("later_only.html")
+    msg = p.locator(".mmp-msg")
+    msg.wait_for(state="visible", timeout=15_000)
+    assert "not on this page" in msg.inner_text()
+    assert p.locator("img.mmp-poster").count() == 1
+    v.check_clean()
+    v.context.close()
+
+
+def test_book_pages_are_offline_and_render_maths(browser, site):
+    base, html = site
+    pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
+    pages += ["intro.html", "bibliography.html"]
+    assert len(pages) >= 8
+    v = Visit(browser, base)
+    for name in pages:
+        p = v.open(name)
+        if name.startswith("notebooks/"):
+            p.wait_for_function("window.MathJax && MathJax.startup && MathJax.startup.promise")
+            p.evaluate("MathJax.startup.promise.then(() => document.fonts.ready).then(() => 1)")
+            assert p.locator("mjx-container").count() > 0, f"{name}: no rendered maths"
+            prose = p.evaluate(
+                """() => { const a = document.querySelector('article').cloneNode(true);
+                a.querySelectorAll('pre, code, .cell_input, .cell_output').forEach(e => e.remove());
+                return a.innerText; }"""
+            )
+            for raw in ("\\(", "\\[", "$$"):
+                assert raw not in prose, f"{name}: raw TeX {raw!r} in the text"
+            if name.endswith("03_amdm.html"):
+                keep(p, "chapter3", full_page=False)
+        v.check_clean()
+    v.context.close()
