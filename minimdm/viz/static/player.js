@@ -488,15 +488,17 @@ export async function mount(container, payload) {
       labels[i].style.top = `${((1 - p.y) / 2) * h}px`;
       labels[i].style.visibility = p.z < 1 ? "visible" : "hidden";
     });
-    // labels that would overlap stack upwards, so each stays readable
+    // labels that would overlap stack upwards, so each stays readable; a stack that reaches the
+    // top of the picture goes on below the head instead, so that no label is cut off
     const placed = [];
+    const free = (x, y, w, h) => placed.every((q) => Math.abs(q.x - x) >= (q.w + w) / 2 + 2 || Math.abs(q.y - y) >= h + 1);
     labels.forEach((lab) => {
       if (lab.style.display === "none") return;
-      let x = parseFloat(lab.style.left), y = parseFloat(lab.style.top);
-      const w = lab.offsetWidth, h = lab.offsetHeight;
-      for (const q of placed) {
-        if (Math.abs(q.x - x) < (q.w + w) / 2 + 2 && Math.abs(q.y - y) < h + 1) y = q.y - h - 2;
-      }
+      const x = parseFloat(lab.style.left), w = lab.offsetWidth, h = lab.offsetHeight;
+      const y0 = Math.max(parseFloat(lab.style.top), h + 2); // the label's bottom edge
+      let y = y0;
+      for (let k = 1; !free(x, y, w, h) && y0 - k * (h + 2) >= h + 2; k++) y = y0 - k * (h + 2);
+      for (let k = 1; !free(x, y, w, h) && k <= labels.length; k++) y = y0 + k * (h + 2);
       lab.style.top = `${y}px`;
       placed.push({ x, y, w });
     });
