@@ -273,8 +273,9 @@ def test_book_pages_are_offline_and_render_maths(browser, site):
 
 
 def check_players(p, name: str) -> int:
-    """Every player on a chapter page mounts (its poster gives way) and draws a picture that is
-    not blank; each is paused first, so that the page's players do not all play at once."""
+    """Every player on a chapter page mounts (its poster gives way), draws a picture that is not
+    blank and keeps its labels inside it; each is paused first, so that the page's players do not
+    all play at once."""
     players = p.locator(".minimdm-player")
     n = players.count()
     if n == 0:
@@ -293,6 +294,15 @@ def check_players(p, name: str) -> int:
         settle(p)
         img = shot(players.nth(i).locator("canvas"))
         assert img.std() > 8, f"{name}: player {i} looks blank (std {img.std():.1f})"
+        cut = players.nth(i).evaluate(
+            """e => { const c = e.querySelector('canvas').getBoundingClientRect();
+            return [...e.querySelectorAll('.mmp-label')]
+              .filter(l => l.textContent && l.style.visibility !== 'hidden')
+              .filter(l => { const r = l.getBoundingClientRect();
+                             return r.top < c.top - 1 || r.bottom > c.bottom + 1; })
+              .map(l => l.textContent); }"""
+        )
+        assert cut == [], f"{name}: player {i} cuts off its labels {cut}"
         folder = os.environ.get("MINIMDM_SCREENSHOTS")
         if folder:
             Path(folder).mkdir(parents=True, exist_ok=True)

@@ -411,13 +411,16 @@ export async function mount(container, payload) {
     const half = Math.atan(Math.tan((camera.fov * Math.PI) / 360) * Math.min(1, camera.aspect));
     const corners = [0, 1, 2, 3, 4, 5, 6, 7].map((c) => new THREE.Vector3(
       c & 1 ? shown.max.x : shown.min.x, c & 2 ? shown.max.y : shown.min.y, c & 4 ? shown.max.z : shown.min.z));
+    // room above for labels: one row, or a stack of them when the characters overlay each other
+    const rows = payload.layout === "overlay" ? payload.motions.filter((m) => m.label).length : 1;
+    const roof = Math.max(0.3, 0.8 - (Math.max(rows, 1) - 1) * 40 / (stage.clientHeight || payload.height));
     const fits = (d) => {
       orbit.radius = d;
       orbit.update();
       camera.updateMatrixWorld();
       return corners.every((c) => {
         const q = c.clone().project(camera);
-        return q.z < 1 && Math.abs(q.x) < 0.94 && q.y > -0.94 && q.y < 0.8; // room for labels
+        return q.z < 1 && Math.abs(q.x) < 0.94 && q.y > -0.94 && q.y < roof;
       });
     };
     let lo = 0.3, hi = (shown.getBoundingSphere(new THREE.Sphere()).radius + 0.3) / Math.sin(half);
