@@ -1,0 +1,1 @@
+"""CAMDM (Chen et al. 2024), chapter 9."""
