@@ -42,7 +42,6 @@ from minimdm.motion.skeleton import (
     matrix_to_6d,
     quat_to_matrix,
     sixd_to_matrix,
-    wrap_angle,
     yaw_matrix,
 )
 from minimdm.validate import InputError, InputTypeError, describe
