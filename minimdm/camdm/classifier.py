@@ -117,7 +117,9 @@ class StyleClassifier(nn.Module):
             nn.Conv1d(w, w, 5, stride=2, padding=2), nn.GELU(),
         )  # fmt: skip
         self.project = nn.Linear(2 * w, c.feature_dim)
-        self.head = nn.Sequential(nn.GELU(), nn.Dropout(c.dropout), nn.Linear(c.feature_dim, c.n_styles))
+        self.head = nn.Sequential(
+            nn.GELU(), nn.Dropout(c.dropout), nn.Linear(c.feature_dim, c.n_styles)
+        )
 
     def features(self, x: Tensor) -> Tensor:
         h = self.convs(x.transpose(1, 2))  # (B, W', T')
@@ -152,7 +154,9 @@ def _clips(feats: list[Tensor], window: int, stride: int) -> tuple[Tensor, Tenso
 
 
 def _gather(feats: list[Tensor], take: Tensor, start: Tensor, rows: int) -> Tensor:
-    return torch.stack([feats[int(i)][int(s) : int(s) + rows] for i, s in zip(take, start, strict=True)])
+    return torch.stack(
+        [feats[int(i)][int(s) : int(s) + rows] for i, s in zip(take, start, strict=True)]
+    )
 
 
 def train_classifier(
@@ -174,9 +178,13 @@ def train_classifier(
         styles = sorted({c.labels["style"] for c in train})
         skeleton = train[0].skeleton
         f_train = [motion_features(world_frames(c), skeleton) for c in train]
-        f_test = [motion_features(world_frames(c), skeleton) for c in test if c.labels["style"] in styles]
+        f_test = [
+            motion_features(world_frames(c), skeleton) for c in test if c.labels["style"] in styles
+        ]
         y_train = torch.tensor([styles.index(c.labels["style"]) for c in train])
-        y_test = torch.tensor([styles.index(c.labels["style"]) for c in test if c.labels["style"] in styles])
+        y_test = torch.tensor(
+            [styles.index(c.labels["style"]) for c in test if c.labels["style"] in styles]
+        )
         norm = Normalizer.fit(f_train)
         f_train = [norm.normalize(f) for f in f_train]
         f_test = [norm.normalize(f) for f in f_test]

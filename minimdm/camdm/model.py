@@ -162,7 +162,7 @@ class CAMDM(nn.Module):
             self.traj_token = MLP(F * 4, L, L, depth=2, norm=False).sequential()
             n_cond = N_COND_TOKENS
         else:
-            self.cond_token = MLP(3 * L + P * D + F * 4, L, L, depth=2, norm=False).sequential()
+            self.cond_token = MLP(2 * L + P * D + F * 4, L, L, depth=2, norm=False).sequential()
             n_cond = 1
         self.n_cond = n_cond
         self.frame_in = nn.Linear(D, L)

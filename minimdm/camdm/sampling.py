@@ -44,9 +44,10 @@ def guided_x0(
 ) -> Tensor:
     """The clean estimate of eq. 5 for ``x_t`` (B, F, D) at levels ``t`` (B,).
 
-    Rows with ``gamma = 1`` get the conditional model's estimate exactly; when every row has
-    it, the model runs once on the B rows. Otherwise it runs once on 2 B rows (``cond``, then
-    ``cond`` without ``guide``) and combines the halves.
+    When every row has ``gamma = 1`` the model runs once on the B rows: the conditional model
+    exactly. Otherwise it runs once on 2 B rows (``cond``, then ``cond`` without ``guide``) and
+    combines the halves; rows with ``gamma = 1`` take the conditional half as it is (equal to a
+    call on B rows up to the float rounding of the larger batch).
     """
     g = _gammas(gamma, x_t.shape[0], x_t.device)
     if bool((g == 1).all()):

@@ -59,6 +59,8 @@ __all__ = [
     "load_clips",
     "train_camdm",
     "TrainData",
+    "prepare_data",
+    "data_from_clips",
     "load_camdm",
     "camdm_loss",
 ]
@@ -204,28 +206,36 @@ class TrainData:
 
 
 def prepare_data(config: CAMDMTrainConfig) -> TrainData:
-    """Load the takes, cut the windows and fit the normalizers (on unsmoothed trajectories)."""
+    """Load the takes the config names (the test takes too, for the held-out loss), cut the
+    windows and fit the normalizers."""
     clips = load_clips(config.corpus, config.split, config.fps, config.contents)
+    test = None
+    if config.split == "train":
+        test = load_clips(config.corpus, "test", config.fps, config.contents)
+    return data_from_clips(clips, config, test)
+
+
+def data_from_clips(
+    clips: list, config: CAMDMTrainConfig, heldout: list | None = None
+) -> TrainData:
+    """Windows and normalizers (fitted on unsmoothed trajectories) from labelled clips; the
+    styles are the clips' ``labels["style"]``, sorted; ``heldout`` clips of known styles give
+    the held-out loss."""
     styles = tuple(sorted({c.labels["style"] for c in clips}))
     skeleton = clips[0].skeleton  # actors' bone lengths differ; the topology does not
     layout = CAMDMLayout(tuple(skeleton.names), styles, config.fps, config.past, config.future)
-    bank = WindowBank(
-        [world_frames(c) for c in clips], [styles.index(c.labels["style"]) for c in clips], layout
-    )
-    heldout = None
-    if config.split == "train":
-        test = [c for c in load_clips(config.corpus, "test", config.fps, config.contents)
-                if c.labels["style"] in styles]  # fmt: skip
-        if test:
-            heldout = WindowBank(
-                [world_frames(c) for c in test],
-                [styles.index(c.labels["style"]) for c in test],
-                layout,
-            )
-    windows, _ = bank.batch(torch.arange(len(bank)), skeleton.lateral_axis)  # (W, P + F, D)
+
+    def bank(cs: list) -> WindowBank:
+        return WindowBank(
+            [world_frames(c) for c in cs], [styles.index(c.labels["style"]) for c in cs], layout
+        )
+
+    test = [c for c in heldout or [] if c.labels["style"] in styles]
+    data = bank(clips)
+    windows, _ = data.batch(torch.arange(len(data)), skeleton.lateral_axis)  # (W, P + F, D)
     traj = _trajectory(windows, layout, skeleton)
     return TrainData(
-        bank, heldout, layout, skeleton, Normalizer.fit(windows.flatten(1)),
+        data, bank(test) if test else None, layout, skeleton, Normalizer.fit(windows.flatten(1)),
         Normalizer.fit(traj.flatten(1)), [c.name for c in clips],
     )  # fmt: skip
 
