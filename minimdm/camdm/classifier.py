@@ -193,8 +193,8 @@ def train_classifier(
         te_take, te_start = _clips(f_test, config.window, config.eval_stride)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)
-            net = StyleClassifier(ClassifierNetConfig(f_train[0].shape[-1], len(styles), config.width,
-                                                      config.feature_dim, config.dropout))  # fmt: skip
+            size = (config.width, config.feature_dim, config.dropout)
+            net = StyleClassifier(ClassifierNetConfig(f_train[0].shape[-1], len(styles), *size))
         opt = torch.optim.Adam(net.parameters(), lr=config.lr)
         gen = torch.Generator().manual_seed(config.seed)
         log_path = out_dir / "log.jsonl"
