@@ -267,6 +267,19 @@ def test_training_is_deterministic(tiny, tmp_path):
         assert torch.equal(v, twice.model.state_dict()[k])
 
 
+def test_training_resumes_from_its_last_checkpoint(tiny, tmp_path):
+    import json
+
+    _, data = tiny
+    train_camdm(tiny_config(total_steps=20), tmp_path, data=data, progress=False)
+    ckpt = train_camdm(tiny_config(total_steps=30), tmp_path, data=data, progress=False)
+    assert ckpt.step == 30
+    steps = [json.loads(ln)["step"] for ln in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert steps == [10, 20, 20, 30, 30]  # losses every 10 steps, evaluations at the ends
+    with pytest.raises(ValueError, match="cannot resume"):
+        train_camdm(tiny_config(total_steps=40, latent=8), tmp_path, data=data, progress=False)
+
+
 # ------------------------------------------------------------------------------ the controller
 
 

@@ -320,8 +320,8 @@ class CAMDMController:
         fps = L.fps
         root = self.history[:, :, :2]
         hist_h = headings(self.history, axis)  # (B, P)
-        velocity = (root[:, -1] - root[:, -2]) * fps
-        rate = wrap_angle(hist_h[:, -1] - hist_h[:, -2]) * fps
+        velocity = (root[:, -1] - root[:, -3]) * fps / 2  # over two frames: less of the bob
+        rate = wrap_angle(hist_h[:, -1] - hist_h[:, -3]) * fps / 2
         times = torch.arange(1, L.future + 1, dtype=torch.float32, device=self.device) / fps
         user_xy = spring_positions(root[:, -1], velocity, cmd[0], cfg.halflife, times)  # (B, F, 2)
         user_h = spring_headings(hist_h[:, -1], rate, cmd[1], cfg.halflife_facing, times)
