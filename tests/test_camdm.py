@@ -300,6 +300,16 @@ def test_the_controller_replans_every_m_frames_and_at_a_style_change(tiny):
     assert more.frames.shape == (2, 5, D)
 
 
+def test_a_start_of_another_style_is_a_style_change(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt, ControlConfig(M=3, switch_frames=4))
+    ctl.reset(walker("big"), n_characters=2, style=["big", "small"])
+    out = ctl.run(Commands.hold([1.0, 0.0], 0.0, 1, 9, batch=2), 9)
+    assert torch.stack(out.gammas).flatten().tolist() == pytest.approx([0.7, 1, 0.7, 1, 1, 1])
+    with pytest.raises(InputError, match="one of the model's styles"):
+        ctl.reset(walker("big"), style="drunk")
+
+
 def test_the_controller_without_hfte_still_runs(tiny):
     ckpt, _ = tiny
     ctl = CAMDMController(ckpt, ControlConfig(M=4, extend=False))

@@ -214,9 +214,11 @@ class CAMDMController:
         return x.float()
 
     # ---------------------------------------------------------------- the characters
-    def reset(self, start: Clip | Tensor, n_characters: int = 1) -> None:
+    def reset(self, start: Clip | Tensor, n_characters: int = 1, style: Any = None) -> None:
         """Start from a clip's last P frames (the same for ``n_characters``), or from world frames
-        ``(B, >= P, D)`` (:func:`~minimdm.camdm.data.world_frames`)."""
+        ``(B, >= P, D)`` (:func:`~minimdm.camdm.data.world_frames`). ``style`` is the start's
+        style (a name, an index, or one per character): a command of another style is then a
+        style change (None: the first command's style is the start's)."""
         L = self.layout
         n_characters = check_int("n_characters", n_characters, low=1)
         if isinstance(start, Clip):
@@ -243,6 +245,14 @@ class CAMDMController:
         self._applied = 0
         self._command: tuple[Tensor, Tensor, Tensor] | None = None
         self._style: Tensor | None = None
+        if style is not None:
+            s = self.layout.style_index(style, "style")
+            if s.numel() not in (1, frames.shape[0]):
+                raise InputError(
+                    f"style must be one style or {frames.shape[0]} (one per character), got "
+                    f"{s.numel()}"
+                )
+            self._style = s.expand(frames.shape[0]).to(self.device)
         self._changed_at = torch.full((frames.shape[0],), -(10**9), dtype=torch.long)
         self._frame = 0
 
@@ -320,8 +330,9 @@ class CAMDMController:
         fps = L.fps
         root = self.history[:, :, :2]
         hist_h = headings(self.history, axis)  # (B, P)
-        velocity = (root[:, -1] - root[:, -3]) * fps / 2  # over two frames: less of the bob
-        rate = wrap_angle(hist_h[:, -1] - hist_h[:, -3]) * fps / 2
+        k = min(2, L.past - 1)  # over two frames: less of the bob within a step
+        velocity = (root[:, -1] - root[:, -1 - k]) * fps / k
+        rate = wrap_angle(hist_h[:, -1] - hist_h[:, -1 - k]) * fps / k
         times = torch.arange(1, L.future + 1, dtype=torch.float32, device=self.device) / fps
         user_xy = spring_positions(root[:, -1], velocity, cmd[0], cfg.halflife, times)  # (B, F, 2)
         user_h = spring_headings(hist_h[:, -1], rate, cmd[1], cfg.halflife_facing, times)

@@ -10,7 +10,8 @@ t of the T-step schedule (CAMDM: T = 8), the model predicts the clean future fro
 .. math:: \\mathcal L = \\lambda_{samp}\\|\\hat x_0 - x_0\\|^2 + \\lambda_{pos}\\|FK(\\hat x_0) -
           FK(x_0)\\|^2 + \\lambda_{foot}\\mathcal L_{foot} + \\lambda_{vel}\\mathcal L_{vel},
 
-with the joint positions of eq. 3 in metres (forward kinematics of the rest skeleton),
+with the joint positions of eq. 3 by forward kinematics of the rest skeleton, in decimetres
+(``fk_scale``: our x0 loss is on normalized features, the paper's on raw ones),
 :math:`\\mathcal L_{foot}` the squared velocity of the feet where the data's feet rest (MDM),
 and :math:`\\mathcal L_{vel}` the squared error of the joints' velocities. The past motion is
 replaced by the learned null with probability ``p_drop_past`` (0.15, for eq. 5), the style by the
@@ -105,6 +106,11 @@ class CAMDMTrainConfig:
     """lambda_vel: joint velocities, metres per frame."""
     contact_speed: float = 0.01
     """A foot of the data rests when it moves less than this, metres per frame."""
+    fk_scale: float = 10.0
+    """The positions of eqs. 3-4 are measured in units of 1 / fk_scale metres (10: decimetres).
+    The paper's x0 loss is on raw features (6D rotations, metres), ours on normalized ones, about
+    100 times larger; decimetres give the geometric terms their weight against it with the
+    paper's lambdas of 1 (in metres they were 1-5% of the loss and the motion jittered)."""
     p_drop_past: float = 0.15
     """Probability of replacing the past motion by the null (CFG-PM, eq. 5)."""
     p_drop_style: float = 0.0
@@ -285,13 +291,14 @@ def camdm_loss(
     norm = data.window_norm
     mean = norm.mean.view(-1, x0.shape[-1])[P:].to(x0)  # (F, D)
     std = norm.std.view(-1, x0.shape[-1])[P:].to(x0)
-    pos_hat = frame_positions(x0_hat * std + mean, data.skeleton)  # (B, F, J, 3) metres
-    pos = frame_positions(x0 * std + mean, data.skeleton)
+    k = config.fk_scale
+    pos_hat = k * frame_positions(x0_hat * std + mean, data.skeleton)  # (B, F, J, 3)
+    pos = k * frame_positions(x0 * std + mean, data.skeleton)
     l_pos = ((pos_hat - pos) ** 2).sum(-1).mean()  # eq. 3
     vel_hat, vel = pos_hat.diff(dim=1), pos.diff(dim=1)  # (B, F - 1, J, 3)
     l_vel = ((vel_hat - vel) ** 2).sum(-1).mean()
     feet = _feet(data.skeleton)
-    rest = vel[:, :, feet].norm(dim=-1) < config.contact_speed  # (B, F - 1, n_feet)
+    rest = vel[:, :, feet].norm(dim=-1) < k * config.contact_speed  # (B, F - 1, n_feet)
     l_foot = ((vel_hat[:, :, feet] ** 2).sum(-1) * rest).mean()
     loss = (
         config.w_samp * l_samp
