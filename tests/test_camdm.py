@@ -390,6 +390,20 @@ def test_a_checkpoint_for_another_skeleton_or_style_set_is_refused(tiny):
     assert "['big', 'small']" in str(e.value) and "['happy', 'sad']" in str(e.value)
 
 
+def test_a_classifier_of_another_style_set_is_refused(tmp_path):
+    from minimdm.camdm.classifier import ClassifierNetConfig, StyleClassifier, style_accuracy
+    from minimdm.checkpoint import save_checkpoint
+
+    net_ = StyleClassifier(ClassifierNetConfig(3 + 12 * J, 2, width=8, feature_dim=4))
+    save_checkpoint(tmp_path, net_, {"styles": ["big", "small"], "config": {"window": 60}})
+    with pytest.raises(CheckpointMismatchError, match="another style set") as e:
+        load_classifier(tmp_path, expected_styles=["happy", "sad"])
+    assert "['big', 'small']" in str(e.value) and "['happy', 'sad']" in str(e.value)
+    ckpt = load_classifier(tmp_path, expected_styles=["big", "small"])
+    with pytest.raises(InputError, match=r"frames must be world frames of shape \(B, N >= 60, D\)"):
+        style_accuracy(ckpt, torch.zeros(1, 30, D), torch.zeros(1))
+
+
 def test_the_camdm_command_reports_a_missing_config_in_one_line(capsys, tmp_path):
     code = main(["camdm", "train", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
