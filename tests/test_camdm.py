@@ -112,6 +112,22 @@ def test_each_condition_reaches_its_own_token(which, seed):
     assert set(changed.nonzero()[:, 0].tolist()) == expected
 
 
+def test_past_frames_tokens_give_each_past_frame_its_own_token():
+    model, cond = net("past_frames"), conditions()
+    x, t = torch.randn(3, F, D), torch.zeros(3, dtype=torch.long)
+    base = model.tokens(x, t, cond)
+    assert base.shape[1] == 2 + P + 1 + F
+    for what, want in (("past", {2 + P - 1}), ("traj", {2 + P})):
+        c = conditions()
+        if what == "past":
+            c.past = c.past.clone()
+            c.past[:, -1] += 1.0  # the last past frame only
+        else:
+            c.traj = c.traj + 1.0
+        changed = (model.tokens(x, t, c) - base).abs().amax(dim=(0, 2)) > 0
+        assert set(changed.nonzero()[:, 0].tolist()) == want
+
+
 def test_a_single_token_fuses_every_condition_and_the_mlp_has_none():
     model, cond = net("single"), conditions()
     x, t = torch.randn(3, F, D), torch.zeros(3, dtype=torch.long)

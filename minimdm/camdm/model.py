@@ -14,6 +14,10 @@ token  from
 4..    the F noisy frames x_t (a linear map per frame)
 =====  ===========================================================================
 
+With ``tokens="past_frames"`` the past motion gets one token per frame (a linear map each, as
+in the authors' code), so that tokens 2..P+1 hold the past and P+2 the trajectory: the last
+pose then reaches the frame tokens unsqueezed.
+
 Learned positions are added to every token. Two ablations of Table 3 are switches of
 :class:`CAMDMConfig`: ``tokens="single"`` fuses all conditions into one token, as MDM does
 (Ours w/o SCT), and ``backbone="mlp"`` replaces the transformer by an MLP on the whole
@@ -65,13 +69,16 @@ class CAMDMConfig:
     dropout: float = 0.1
     """Dropout in the transformer layers."""
     tokens: str = "separate"
-    """'separate': one token per condition (SCT); 'single': one fused condition token."""
+    """'separate': one token per condition (SCT); 'single': one fused condition token (w/o
+    SCT); 'past_frames': separate tokens, the past motion one per frame (the official code)."""
     backbone: str = "transformer"
     """'transformer' (CAMDM) or 'mlp' (the ablation Ours w/ MLP)."""
 
     def __post_init__(self) -> None:
-        if self.tokens not in ("separate", "single"):
-            raise ValueError(f"tokens must be 'separate' or 'single', got {self.tokens!r}")
+        if self.tokens not in ("separate", "single", "past_frames"):
+            raise ValueError(
+                f"tokens must be 'separate', 'single' or 'past_frames', got {self.tokens!r}"
+            )
         if self.backbone not in ("transformer", "mlp"):
             raise ValueError(f"backbone must be 'transformer' or 'mlp', got {self.backbone!r}")
         for name in ("dim", "n_styles", "past", "future", "latent", "layers", "heads", "ff"):
@@ -161,6 +168,10 @@ class CAMDM(nn.Module):
             self.past_token = MLP(P * D, L, L, depth=2, norm=False).sequential()
             self.traj_token = MLP(F * 4, L, L, depth=2, norm=False).sequential()
             n_cond = N_COND_TOKENS
+        elif c.tokens == "past_frames":
+            self.past_token = nn.Linear(D, L)  # one token per past frame
+            self.traj_token = MLP(F * 4, L, L, depth=2, norm=False).sequential()
+            n_cond = N_COND_TOKENS - 1 + P
         else:
             self.cond_token = MLP(2 * L + P * D + F * 4, L, L, depth=2, norm=False).sequential()
             n_cond = 1
@@ -198,10 +209,14 @@ class CAMDM(nn.Module):
             raise ValueError("an MLP backbone has no tokens")
         t_emb, s_emb, past, traj = self._inputs(t, cond)
         if self.config.tokens == "separate":
-            conds = [t_emb, s_emb, self.past_token(past), self.traj_token(traj)]
+            conds = torch.stack([t_emb, s_emb, self.past_token(past), self.traj_token(traj)], 1)
+        elif self.config.tokens == "past_frames":
+            frames = self.past_token(past.view(past.shape[0], self.config.past, -1))  # (B, P, L)
+            ends = torch.stack([t_emb, s_emb], 1)
+            conds = torch.cat([ends, frames, self.traj_token(traj)[:, None]], 1)
         else:
-            conds = [self.cond_token(torch.cat([t_emb, s_emb, past, traj], -1))]
-        seq = torch.cat([torch.stack(conds, 1), self.frame_in(x_t)], 1)  # (B, n + F, L)
+            conds = self.cond_token(torch.cat([t_emb, s_emb, past, traj], -1))[:, None]
+        seq = torch.cat([conds, self.frame_in(x_t)], 1)  # (B, n + F, L)
         return seq + self.position
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Conditions) -> Tensor:
