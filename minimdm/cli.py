@@ -207,6 +207,8 @@ def _check_kind(ckpt, command: str) -> None:
     hint = {
         "aamdm_motion": " (AAMDM models sample with minimdm.aamdm.eval.rollout_aamdm)",
         "policy": " (a steering policy runs on its base model with minimdm.rl.rollout.steer)",
+        "camdm": " (CAMDM runs with minimdm.camdm.controller.CAMDMController)",
+        "style_classifier": " (a style classifier: minimdm.camdm.classifier.predict_styles)",
     }.get(ckpt.kind, "")
     raise InputError(
         f"--checkpoint must hold an A-MDM, MVAE or MSE model (kinds {', '.join(SAMPLED_KINDS)}) "
