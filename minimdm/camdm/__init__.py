@@ -5,7 +5,8 @@ chapter 9: a conditional auto-regressive motion diffusion model and its run-time
   position + 6D local rotations), the trajectory condition (c_rv, c_ro), the training windows;
 * :mod:`~minimdm.camdm.model`: the transformer denoiser of eq. 1 with separate condition tokens
   (and the ablations: one fused token, an MLP backbone);
-* :mod:`~minimdm.camdm.train`: eqs. 2-4 and past-motion dropout (``minimdm camdm train``);
+* :mod:`~minimdm.camdm.train_config`, :mod:`~minimdm.camdm.train`: eqs. 2-4 and past-motion
+  dropout (``minimdm camdm train``);
 * :mod:`~minimdm.camdm.sampling`: CFG on past motion (eq. 5) as a step rule of the one reverse
   chain, :func:`minimdm.diffusion.reverse_chain`;
 * :mod:`~minimdm.camdm.trajectory`: the spring, blended and extended (HFTE) trajectories;
