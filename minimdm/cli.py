@@ -7,6 +7,8 @@
     minimdm eval --checkpoint checkpoints/amdm --json
     minimdm data list                                    # known corpora, licences, present?
     minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
+    minimdm camdm train configs/camdm.yaml               # -> checkpoints/camdm/ (chapter 9)
+    minimdm camdm classifier configs/camdm_classifier.yaml  # -> checkpoints/camdm_classifier/
 
 ``train`` resumes from the output folder's training state when there is one, so an
 interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
@@ -128,6 +130,59 @@ def _cmd_rl(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_camdm_train(args: argparse.Namespace) -> int:
+    from minimdm.camdm.train import load_train_config, train_camdm
+    from minimdm.config import with_changes
+
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)  # before the corpus is loaded
+    changes = _overrides(args.set or [])
+    if args.steps is not None:
+        changes["total_steps"] = args.steps
+    config = with_changes(load_train_config(args.config), changes, where="--set")
+    check_device("device (of the config)", config.device)
+    ckpt = train_camdm(
+        config,
+        out,
+        resume=not args.restart,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": _recorded_command("camdm train", args, 1)},
+    )
+    summary = {
+        "checkpoint": str(ckpt.paths.weights),
+        "steps": ckpt.step,
+        "train_seconds": ckpt.metadata.get("train_seconds"),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+def _cmd_camdm_classifier(args: argparse.Namespace) -> int:
+    from minimdm.camdm.classifier import load_classifier_config, train_classifier
+    from minimdm.config import with_changes
+
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)
+    config = with_changes(
+        load_classifier_config(args.config), _overrides(args.set or []), where="--set"
+    )
+    ckpt = train_classifier(
+        config,
+        out,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": _recorded_command("camdm classifier", args, 1)},
+    )
+    summary = {
+        "checkpoint": str(ckpt.paths.weights),
+        "heldout_accuracy": ckpt.metadata.get("heldout_accuracy"),
+        "train_seconds": ckpt.metadata.get("train_seconds"),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
 def _parse_start(text: str) -> tuple[str, int]:
     """``"clip:frame"`` -> (clip, frame); ``"clip"`` -> (clip, 0), taken as frame 1."""
     name, _, frame = text.rpartition(":")
@@ -152,6 +207,8 @@ def _check_kind(ckpt, command: str) -> None:
     hint = {
         "aamdm_motion": " (AAMDM models sample with minimdm.aamdm.eval.rollout_aamdm)",
         "policy": " (a steering policy runs on its base model with minimdm.rl.rollout.steer)",
+        "camdm": " (CAMDM runs with minimdm.camdm.controller.CAMDMController)",
+        "style_classifier": " (a style classifier: minimdm.camdm.classifier.predict_styles)",
     }.get(ckpt.kind, "")
     raise InputError(
         f"--checkpoint must hold an A-MDM, MVAE or MSE model (kinds {', '.join(SAMPLED_KINDS)}) "
@@ -310,6 +367,30 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(fn=_cmd_rl)
 
+    c = add("camdm", help="train CAMDM or its style classifier (chapter 9)")
+    csub = c.add_subparsers(dest="camdm_command", required=True)
+    cadd = functools.partial(csub.add_parser, parents=[common])
+    for verb, fn, what in (
+        ("train", _cmd_camdm_train, "the CAMDM denoiser, e.g. configs/camdm.yaml"),
+        (
+            "classifier",
+            _cmd_camdm_classifier,
+            "the style classifier, configs/camdm_classifier.yaml",
+        ),
+    ):
+        ct = cadd(verb, help=f"train {what.split(',')[0]}")
+        ct.add_argument("config", help=f"a YAML file of configs/: {what}")
+        ct.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
+        ct.add_argument(
+            "--set", action="append", metavar="KEY=VALUE", help="override a config field"
+        )
+        ct.add_argument("--threads", type=_int_arg(1), default=1, help="torch CPU threads")
+        ct.add_argument("--quiet", action="store_true", help="no progress bar")
+        if verb == "train":
+            ct.add_argument("--steps", type=_int_arg(1), help="override total_steps")
+            ct.add_argument("--restart", action="store_true", help="ignore a training state")
+        ct.set_defaults(fn=fn)
+
     s = add("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
     s.add_argument("--frames", type=_int_arg(1), required=True, help="frames to generate")
@@ -375,7 +456,8 @@ def main(argv: list[str] | None = None) -> int:
     except (*USER_ERRORS, DownloadError, NonFiniteFrameError) as e:
         if args.debug:
             raise
-        where = " ".join(filter(None, [args.command, getattr(args, "data_command", None)]))
+        sub = getattr(args, "data_command", None) or getattr(args, "camdm_command", None)
+        where = " ".join(filter(None, [args.command, sub]))
         message = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())
         print(f"minimdm {where}: error: {message}", file=sys.stderr)
         return 2
