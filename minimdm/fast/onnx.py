@@ -98,6 +98,8 @@ def export_onnx(graph: FrameGraph, path: str | os.PathLike | None = None) -> byt
         warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
         warnings.filterwarnings("ignore", category=DeprecationWarning)
+        # index_add (the residual hook) always warns; its indices are distinct features
+        warnings.filterwarnings("ignore", message=".*duplicated values in 'index' field.*")
         f = Path(tmp) / "frame.onnx"
         torch.onnx.export(
             graph, args, str(f), dynamo=False, input_names=names, output_names=["next_state"],
@@ -118,7 +120,10 @@ def export_onnx(graph: FrameGraph, path: str | os.PathLike | None = None) -> byt
 def _atomic_write(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
     try:
+        os.chmod(tmp, 0o666 & ~umask)  # an ordinary file's mode, not mkstemp's 0600
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
