@@ -252,7 +252,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     default = Path(f"{(src.parent if src.suffix == '.safetensors' else src).name}.onnx")
     out = check_output_file("--out", args.out or default, (".onnx",))  # before any work
     graph = frame_graph(load(args.onnx), steps=args.steps, eta=args.eta)
-    data = export_onnx(graph, out)
+    data = export_onnx(graph, out, weights=args.weights)
     print(json.dumps({
         "out": str(out), "kind": graph.kind, "bytes": len(data), "state_dim": graph.state_dim,
         "noise_dim": graph.noise_dim, "inputs": ["state", *(n for n, _, _ in graph.extra_inputs),
@@ -364,6 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
     x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
     x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
+    x.add_argument(
+        "--weights", choices=("fp32", "int8"), default="fp32",
+        help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",
+    )  # fmt: skip
     x.set_defaults(fn=_cmd_export)
 
     d = add("data", help="list and download motion corpora")
