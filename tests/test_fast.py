@@ -138,6 +138,20 @@ def test_metadata_of_the_other_kinds(built):
     assert joy["policy"]["task"]["name"] == "joystick" and joy["policy"]["observe"] == "root"
 
 
+def test_int8_weights_are_smaller_and_close(built):
+    graph, data = built["amdm_ddpm"]
+    small = export_onnx(graph, weights="int8")
+    assert len(small) < len(data) / 2
+    assert read_metadata(small)["weights"] == "int8" and read_metadata(data)["weights"] == "fp32"
+    state, _ = _inputs(graph, batch=8)
+    a = FastFrame(data)(state, torch.Generator().manual_seed(2))
+    b = FastFrame(small)(state, torch.Generator().manual_seed(2))
+    rel = ((b - a).pow(2).mean().sqrt() / a.pow(2).mean().sqrt()).item()
+    assert 1e-4 < rel < 0.2  # an approximation, near the fp32 frame
+    with pytest.raises(InputError, match="weights must be one of fp32, int8"):
+        export_onnx(graph, weights="bf16")
+
+
 # --------------------------------------------------------------------------------------------
 # Bad input
 
