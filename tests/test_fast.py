@@ -126,6 +126,31 @@ def test_exported_file_runs_in_bare_onnxruntime_and_keeps_its_metadata(built, tm
     assert meta["inputs"][-1]["widths"] == list(graph.noise_widths)
 
 
+def test_metadata_alone_decodes_a_frame_as_the_library_does(built):
+    """A game engine's path: normalizer, columns and the decode recipe from the file only."""
+    from minimdm.motion.features import StartPose, decode
+
+    graph, data = built["amdm_ddpm"]
+    meta = read_metadata(data)
+    cols = {k: slice(*v["columns"]) for k, v in meta["feature_columns"].items() if k != "decode"}
+    state, _ = _inputs(graph, batch=3)
+    out = FastFrame(data)(state, torch.Generator().manual_seed(0)).double().numpy()
+    feats = out * np.array(meta["normalizer"]["std"]) + np.array(meta["normalizer"]["mean"])
+    h = feats[:, cols["yaw_rate"]][:, 0]  # from heading 0 at the origin
+    c, s = np.cos(h), np.sin(h)
+    vel = feats[:, cols["root_vel"]]
+    xy = np.stack([c * vel[:, 0] - s * vel[:, 1], s * vel[:, 0] + c * vel[:, 1]], -1)
+    local = feats[:, cols["joint_pos"]].reshape(3, -1, 3)
+    world = np.stack([
+        c[:, None] * local[..., 0] - s[:, None] * local[..., 1] + xy[:, None, 0],
+        s[:, None] * local[..., 0] + c[:, None] * local[..., 1] + xy[:, None, 1],
+        local[..., 2],
+    ], -1)  # fmt: skip
+    ref = decode(torch.from_numpy(feats)[:, None], StartPose(torch.zeros(3, 2), torch.zeros(3)))
+    assert np.abs(world - ref[:, 0].numpy()).max() < 1e-9
+    assert len(meta["skeleton"]["names"]) == local.shape[1]
+
+
 def test_metadata_of_the_other_kinds(built):
     ddim = read_metadata(built["amdm_ddim"][1])
     assert ddim["sampler"]["name"] == "ddim" and len(ddim["sampler"]["levels"]) == 10

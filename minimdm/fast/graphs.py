@@ -115,12 +115,43 @@ class FrameGraph(nn.Module):
         return {}
 
 
+def feature_columns(layout: dict | None) -> dict[str, Any] | None:
+    """Where each quantity lives in a frame's features, for readers without minimdm.
+
+    ``[start, stop)`` column ranges of :class:`~minimdm.motion.features.FeatureLayout` with their
+    meaning: every vector is in the heading frame of its own frame, z up, metres and radians
+    per frame.
+    """
+    if layout is None:
+        return None
+    from minimdm.motion.features import FeatureLayout
+
+    lay = FeatureLayout.from_dict(layout)
+    what = {
+        "root_vel": "root ground displacement (x, y) from the previous frame",
+        "yaw_rate": "heading change from the previous frame, radians",
+        "joint_pos": "joint positions (x, y, z per joint) relative to the root's ground point",
+        "joint_vel": "joint displacements from the previous frame",
+        "joint_rot": "global joint rotations, 6D (two matrix columns per joint), yaw removed",
+    }
+    cols = {
+        k: {"columns": [getattr(lay, k).start, getattr(lay, k).stop], "what": w}
+        for k, w in what.items()
+    }
+    cols["decode"] = (
+        "heading_f = heading_{f-1} + yaw_rate; xy_f = xy_{f-1} + Rz(heading_f) root_vel; "
+        "joint j in the world (z up, metres) = Rz(heading_f) joint_pos_j + (xy_f, 0)"
+    )
+    return cols
+
+
 def _settings(ckpt: Checkpoint) -> dict[str, Any]:
     """The checkpoint's skeleton, feature layout, fps and provenance, as stored."""
     layout = ckpt.feature_layout
     fps = (layout or {}).get("fps") or ckpt.config.get("fps")
     return {
         "feature_layout": layout,
+        "feature_columns": feature_columns(layout),
         "skeleton": ckpt.skeleton,
         "fps": float(fps) if fps is not None else None,
         "checkpoint": {

@@ -70,7 +70,7 @@ def _require_onnxruntime():
     return onnxruntime
 
 
-def metadata(graph: FrameGraph) -> dict[str, Any]:
+def metadata(graph: FrameGraph, weights: str = "fp32") -> dict[str, Any]:
     """The JSON metadata of ``graph``'s ONNX file (module docstring)."""
     inputs = [{"name": "state", "shape": ["batch", graph.state_dim]}]
     inputs += [
@@ -88,6 +88,7 @@ def metadata(graph: FrameGraph) -> dict[str, Any]:
         "minimdm_version": __version__,
         "inputs": inputs,
         "outputs": [{"name": "next_state", "shape": ["batch", graph.state_dim]}],
+        "weights": weights,
         **graph.describe(),
         **graph.settings,
     }
@@ -134,7 +135,7 @@ def export_onnx(
     if weights == "int8":
         model = _int8_weights(model)
     meta = model.metadata_props.add()
-    meta.key, meta.value = METADATA_KEY, json.dumps({**metadata(graph), "weights": weights})
+    meta.key, meta.value = METADATA_KEY, json.dumps(metadata(graph, weights))
     model.producer_name, model.producer_version = "minimdm", __version__
     data = model.SerializeToString()
     if path is not None:
