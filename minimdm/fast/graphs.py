@@ -156,7 +156,7 @@ def _settings(ckpt: Checkpoint) -> dict[str, Any]:
         "fps": float(fps) if fps is not None else None,
         "checkpoint": {
             "kind": ckpt.kind,
-            "file": str(ckpt.paths.weights),
+            "name": ckpt.paths.weights.parent.name,  # the folder, not this machine's path
             "command": ckpt.metadata.get("command"),
             "step": ckpt.metadata.get("step"),
             "minimdm_version": ckpt.metadata.get("minimdm_version"),
