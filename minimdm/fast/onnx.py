@@ -106,8 +106,9 @@ def export_onnx(
     ``weights="int8"`` stores every linear layer's weights as 8-bit integers with one fp32 scale
     per block of 32 inputs (ONNX Runtime's ``MatMulNBits``, computed with int8 dot products):
     a quarter of the bytes, so that a large denoiser stays in the CPU's cache. It is an
-    approximation: the frames differ from the fp32 graph's by about 1 % of their spread
-    (``benchmarks/realtime.py`` measures it); ``"fp32"`` matches the eager chain within 1e-4.
+    approximation: on the same noise a frame differs from the fp32 graph's by 1 to 9 % of its
+    RMS, more with DDIM's few steps (``benchmarks/realtime.py`` measures it); ``"fp32"`` matches
+    the eager chain within 1e-4.
     The write is atomic (a temporary file, then a rename). Returns the model's bytes.
     """
     if weights not in WEIGHTS:
