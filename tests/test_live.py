@@ -19,7 +19,6 @@ import threading
 from pathlib import Path
 
 import pytest
-
 from test_browser import ARGS, CHROMIUM, _unavailable
 
 ROOT = Path(__file__).resolve().parents[1]

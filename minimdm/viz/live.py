@@ -1,4 +1,4 @@
-"""A live character for the browser: a steering policy on A-MDM as one ONNX graph, and its page data.
+"""A live character for the browser: a steering policy on A-MDM as one ONNX graph, and its data.
 
 :func:`live_bundle` writes what ``static/live.js`` needs to run a character in the reader's
 browser with ONNX Runtime Web: the policy + A-MDM frame graph of :mod:`minimdm.fast` (fp32: the
