@@ -43,7 +43,7 @@ def live_bundle(
     out.mkdir(parents=True, exist_ok=True)
     stem = Path(str(policy)).name
     model = out / f"{stem}.onnx"
-    export_onnx(graph, model)
+    export_onnx(graph, model, batch=1)  # one character: level-only parts fold into constants
     base = graph.steering.checkpoint.metadata["base"]["name"]
     from minimdm.fast.graphs import load
 
@@ -51,7 +51,7 @@ def live_bundle(
     g = torch.Generator().manual_seed(seed)
     pick = torch.randperm(len(frames), generator=g)[:n_starts]
     starts = graph.steering.cm.normalize(frames[pick])  # (n, D)
-    meta = metadata(graph)
+    meta = metadata(graph, batch=1)
     data = {
         "model": model.name,
         "metadata": meta,

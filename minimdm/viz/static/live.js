@@ -83,7 +83,12 @@ export async function live(container, { ort, data: dataUrl }) {
   const sun = new THREE.DirectionalLight(0xffffff, 2.2);
   sun.position.set(3, 8, 4);
   scene.add(sun);
-  const grid = new THREE.GridHelper(200, 200, 0xb4b7bd, 0xcfd2d6);
+  const ground = new THREE.Mesh(new THREE.PlaneGeometry(400, 400),
+    new THREE.MeshStandardMaterial({ color: 0xe6e7ea, roughness: 1 }));
+  ground.rotation.x = -Math.PI / 2;
+  scene.add(ground);
+  const grid = new THREE.GridHelper(200, 200, 0x8d939a, 0xaeb3b9); // 1 m squares
+  grid.position.y = 0.002;
   scene.add(grid);
   const camera = new THREE.PerspectiveCamera(40, width / height, 0.05, 500);
   const mat = new THREE.MeshStandardMaterial({ color: 0x2f6db5, roughness: 0.5 });
@@ -176,7 +181,7 @@ export async function live(container, { ort, data: dataUrl }) {
       heading: heading.toFixed(3), goal: goal.heading.toFixed(3),
     });
     info.textContent = `${rate.toFixed(0)} frames/s · command ${Math.round((goal.heading * 180) / Math.PI)}°, ${goal.speed.toFixed(1)} m/s`;
-    requestAnimationFrame(loop);
+    setTimeout(loop, 0); // the next frame at once: waiting for the display would cost up to 16 ms
   }
-  requestAnimationFrame(loop);
+  setTimeout(loop, 0);
 }
