@@ -83,12 +83,18 @@ export async function live(container, { ort, data: dataUrl }) {
   const sun = new THREE.DirectionalLight(0xffffff, 2.2);
   sun.position.set(3, 8, 4);
   scene.add(sun);
-  const ground = new THREE.Mesh(new THREE.PlaneGeometry(400, 400),
-    new THREE.MeshStandardMaterial({ color: 0xe6e7ea, roughness: 1 }));
-  ground.rotation.x = -Math.PI / 2;
-  scene.add(ground);
-  const grid = new THREE.GridHelper(200, 200, 0x8d939a, 0xaeb3b9); // 1 m squares
-  grid.position.y = 0.002;
+  // the ground: a checkerboard of 1 m squares (a texture: lines vanish near the camera in
+  // software WebGL), moved along with the character by whole squares
+  const check = new THREE.DataTexture(Uint8Array.of(
+    214, 216, 220, 255, 190, 193, 198, 255, 190, 193, 198, 255, 214, 216, 220, 255), 2, 2);
+  check.wrapS = check.wrapT = THREE.RepeatWrapping;
+  check.repeat.set(30, 30); // 2 squares per texel pair: 60 m, 1 m squares
+  check.magFilter = THREE.NearestFilter;
+  check.colorSpace = THREE.SRGBColorSpace;
+  check.needsUpdate = true;
+  const grid = new THREE.Mesh(new THREE.PlaneGeometry(60, 60),
+    new THREE.MeshBasicMaterial({ map: check }));
+  grid.rotation.x = -Math.PI / 2;
   scene.add(grid);
   const camera = new THREE.PerspectiveCamera(40, width / height, 0.05, 500);
   const mat = new THREE.MeshStandardMaterial({ color: 0x2f6db5, roughness: 0.5 });
@@ -143,6 +149,7 @@ export async function live(container, { ort, data: dataUrl }) {
     const target = new THREE.Vector3(xy[0], 0.9, -xy[1]);
     camera.position.set(xy[0] + 3.2, 2.2, -xy[1] + 3.2);
     camera.lookAt(target);
+    grid.position.set(2 * Math.round(xy[0] / 2), 0, -2 * Math.round(xy[1] / 2)); // whole squares
     arrow.position.set(xy[0], 0.02, -xy[1]);
     arrow.setDirection(new THREE.Vector3(Math.cos(goal.heading), 0, -Math.sin(goal.heading)));
     renderer.render(scene, camera);
