@@ -561,6 +561,3 @@ export async function mount(container, payload) {
   container.dataset.ready = "1";
   return api;
 }
-
-// For the live character (live.js): the figure and the head finder, shared, not copied.
-export { Figure, headJoint };
