@@ -9,13 +9,15 @@
     minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
     minimdm camdm train configs/camdm.yaml               # -> checkpoints/camdm/ (chapter 9)
     minimdm camdm classifier configs/camdm_classifier.yaml  # -> checkpoints/camdm_classifier/
+    minimdm export --onnx checkpoints/amdm --out amdm.onnx  # one frame as one ONNX graph
 
 ``train`` resumes from the output folder's training state when there is one, so an
 interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
 ``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
-``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``data download`` fetches a corpus
-(resuming an interrupted download), checks it and unpacks it into the data folder
-(:func:`minimdm.motion.corpora.data_home`).
+``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``export --onnx`` writes a frame
+of the model, every denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`).
+``data download`` fetches a corpus (resuming an interrupted download), checks it and unpacks it
+into the data folder (:func:`minimdm.motion.corpora.data_home`).
 """
 
 from __future__ import annotations
@@ -299,6 +301,23 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from minimdm.fast import export_onnx, frame_graph
+    from minimdm.fast.graphs import load
+
+    src = Path(args.onnx)
+    default = Path(f"{(src.parent if src.suffix == '.safetensors' else src).name}.onnx")
+    out = check_output_file("--out", args.out or default, (".onnx",))  # before any work
+    graph = frame_graph(load(args.onnx), steps=args.steps, eta=args.eta)
+    data = export_onnx(graph, out, weights=args.weights)
+    print(json.dumps({
+        "out": str(out), "kind": graph.kind, "bytes": len(data), "state_dim": graph.state_dim,
+        "noise_dim": graph.noise_dim, "inputs": ["state", *(n for n, _, _ in graph.extra_inputs),
+                                                  "noise"],
+    }))  # fmt: skip
+    return 0
+
+
 def _cmd_data_list(args: argparse.Namespace) -> int:
     from minimdm.motion.corpora import data_home, list_corpora
 
@@ -417,6 +436,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
+
+    x = add("export", help="write a checkpoint's frame as one ONNX graph, for game engines")
+    x.add_argument(
+        "--onnx", required=True, metavar="CHECKPOINT",
+        help="checkpoint folder, file or shipped name (kinds amdm, aamdm_motion, policy)",
+    )  # fmt: skip
+    x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
+    x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
+    x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
+    x.add_argument(
+        "--weights", choices=("fp32", "int8"), default="fp32",
+        help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",
+    )  # fmt: skip
+    x.set_defaults(fn=_cmd_export)
 
     d = add("data", help="list and download motion corpora")
     dsub = d.add_subparsers(dest="data_command", required=True)
