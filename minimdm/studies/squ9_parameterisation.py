@@ -70,6 +70,34 @@ def x0_error_by_level(
     return model_err, ideal_err
 
 
+def input_gain_by_level(
+    model: MLPDenoiser | None, schedule: NoiseSchedule, sq: Squ9, n: int = 2000, seed: int = 5
+) -> list[float]:
+    """How much the clean estimate follows the noisy input, per level: the mean of
+    :math:`\\tfrac12\\operatorname{tr}\\,\\partial\\hat x^0/\\partial x^t` over noised pairs.
+
+    1 copies the input, 0 ignores it. ``model=None`` measures the ideal denoiser.
+    """
+    g = torch.Generator().manual_seed(seed)
+    x_prev, x_next = sq.sample_pairs(n, g)
+    eps = torch.randn(x_next.shape, generator=g)
+    gains = []
+    for t in range(schedule.T):
+        x_t = q_sample(schedule, x_next, t, noise=eps).requires_grad_(True)
+        with torch.enable_grad():
+            if model is None:
+                x0_hat = sq.posterior_x0(x_t, x_prev, schedule.alphas_cumprod[t])
+            else:
+                x0_hat = DDPMStep(model, schedule, model.predicts).predict(x_t, t, x_prev, None)[0]
+            # samples are independent: the gradient of a column sum is each sample's Jacobian row
+            diag = [
+                torch.autograd.grad(x0_hat[:, i].sum(), x_t, retain_graph=True)[0][:, i]
+                for i in range(2)
+            ]
+        gains.append((torch.stack(diag, 1).sum(1) / 2).mean().item())
+    return gains
+
+
 def run_seed(seed: int, T: int = 20, predicts=PREDICTS, train: dict | None = None) -> list[dict]:
     """Train one model per parameterisation with ``seed`` and measure it; one row each.
 
@@ -87,12 +115,11 @@ def run_seed(seed: int, T: int = 20, predicts=PREDICTS, train: dict | None = Non
         g = torch.Generator().manual_seed(seed)
         losses = train_denoiser(model, schedule, x_prev, x_next, generator=g, **(train or TRAIN))
         with torch.no_grad():
-            out = ddpm_sample(
-                model, schedule, x_eval.shape, cond=x_eval, predicts=p,
-                generator=torch.Generator().manual_seed(seed + 2),
-            )  # fmt: skip
+            g_sample = torch.Generator().manual_seed(seed + 2)
+            out = ddpm_sample(model, schedule, x_eval.shape, x_eval, g_sample, predicts=p)
         m = squ9_metrics(x_eval, out, sq)
         err, ideal = x0_error_by_level(model, schedule, sq)
+        gain = input_gain_by_level(model, schedule, sq)
         rows.append(
             {
                 "predicts": p,
@@ -105,6 +132,7 @@ def run_seed(seed: int, T: int = 20, predicts=PREDICTS, train: dict | None = Non
                 "final_loss": sum(losses[-100:]) / 100,
                 "x0_err": err,
                 "ideal_err": ideal,
+                "input_gain": gain,
                 "model": model,
                 "samples": out,
             }

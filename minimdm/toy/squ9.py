@@ -253,8 +253,11 @@ def plot_transitions(
             xytext=x_prev[i],
             arrowprops=dict(arrowstyle="->", lw=0.6, color=plt.cm.tab10(src[i] / 9), alpha=0.8),
         )
-    lim = 1.6 * squ9.spacing
-    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xticks=[], yticks=[])
+    lim, ticks = 1.6 * squ9.spacing, [-squ9.spacing, 0, squ9.spacing]
+    ax.set(xlim=(-lim, lim), ylim=(-lim, lim), aspect="equal", xticks=ticks, yticks=ticks)
+    ax.set_xlabel("$x_1$ (Squ-9 units)", fontsize=8, labelpad=1)
+    ax.set_ylabel("$x_2$", fontsize=8, labelpad=1)
+    ax.tick_params(labelsize=7, length=2, pad=1)
     if title:
         ax.set_title(title, fontsize=9)
     return fig
