@@ -19,14 +19,13 @@ for several seeds; :func:`summarize` turns the rows into mean ± std over seeds.
 
 from __future__ import annotations
 
-import json
-import statistics
 from pathlib import Path
 
 import torch
 
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.diffusion import DDPMStep, NoiseSchedule, ddpm_sample, q_sample
+from minimdm.studies.seeds import read_jsonl, summarize_seeds
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser
 
 PREDICTS = ("eps", "x0", "v")
@@ -140,22 +139,11 @@ def run_seed(seed: int, T: int = 20, predicts=PREDICTS, train: dict | None = Non
     return rows
 
 
-def _mean_std(vals) -> tuple[float, float]:
-    vals = list(vals)
-    return statistics.fmean(vals), (statistics.stdev(vals) if len(vals) > 1 else float("nan"))
-
-
 def summarize(rows: list[dict]) -> list[dict]:
     """Mean ± std over seeds per parameterisation: ``{"predicts", "n_seeds", metric: (m, s)}``;
     ``x0_err_last`` is the clean estimate's error at the noisiest level."""
-    out = []
-    for p in dict.fromkeys(r["predicts"] for r in rows):
-        rs = [r for r in rows if r["predicts"] == p]
-        row = {"predicts": p, "n_seeds": len(rs)}
-        row.update({m: _mean_std(r[m] for r in rs) for m in METRICS})
-        row["x0_err_last"] = _mean_std(r["x0_err"][-1] for r in rs)
-        out.append(row)
-    return out
+    rows = [{**r, "x0_err_last": r["x0_err"][-1]} for r in rows]
+    return summarize_seeds(rows, "predicts", (*METRICS, "x0_err_last"))
 
 
 def to_json(row: dict) -> dict:
@@ -165,8 +153,4 @@ def to_json(row: dict) -> dict:
 
 def read_results(path: str | Path) -> list[dict]:
     """The per-seed rows of ``benchmarks/squ9_parameterisation.py --save PATH``."""
-    lines = [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()]
-    rows = [x for x in lines if x.get("study") == "squ9_parameterisation"]
-    if not rows:
-        raise ValueError(f"{path} holds no squ9_parameterisation lines")
-    return rows
+    return read_jsonl(path, study="squ9_parameterisation")
