@@ -20,6 +20,8 @@ from minimdm.aamdm import model as _aamdm_model  # noqa: F401  kind "ddgan"
 from minimdm.aamdm import motion as _aamdm_motion  # noqa: F401  kind "aamdm_motion"
 from minimdm.aamdm import nets as _aamdm_nets  # noqa: F401  kind "ddgan_generator"
 from minimdm.amdm import models as _amdm_models  # noqa: F401  kinds "amdm", "mse", "mvae"
+from minimdm.camdm import classifier as _camdm_classifier  # noqa: F401  kind "style_classifier"
+from minimdm.camdm import model as _camdm_model  # noqa: F401  kind "camdm"
 from minimdm.rl import nets as _rl_nets  # noqa: F401  kind "policy"
 
 __all__ = ["__version__", "pretrained", "rollout", "CHECKPOINT_DIR"]
@@ -58,6 +60,8 @@ def _make_hint(name: str) -> str:
         return "Each shipped checkpoint's metadata names the command that made it."
     trainer = "python -m minimdm.aamdm train" if name.startswith("aamdm") else "minimdm train"
     trainer = "minimdm rl" if name.startswith("rl_") else trainer
+    if name.startswith("camdm"):
+        trainer = "minimdm camdm classifier" if "classifier" in name else "minimdm camdm train"
     return f"Make it with: {trainer} configs/{name}.yaml"
 
 

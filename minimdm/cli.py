@@ -7,13 +7,17 @@
     minimdm eval --checkpoint checkpoints/amdm --json
     minimdm data list                                    # known corpora, licences, present?
     minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
+    minimdm camdm train configs/camdm.yaml               # -> checkpoints/camdm/ (chapter 9)
+    minimdm camdm classifier configs/camdm_classifier.yaml  # -> checkpoints/camdm_classifier/
+    minimdm export --onnx checkpoints/amdm --out amdm.onnx  # one frame as one ONNX graph
 
 ``train`` resumes from the output folder's training state when there is one, so an
 interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
 ``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
-``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``data download`` fetches a corpus
-(resuming an interrupted download), checks it and unpacks it into the data folder
-(:func:`minimdm.motion.corpora.data_home`).
+``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``export --onnx`` writes a frame
+of the model, every denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`).
+``data download`` fetches a corpus (resuming an interrupted download), checks it and unpacks it
+into the data folder (:func:`minimdm.motion.corpora.data_home`).
 """
 
 from __future__ import annotations
@@ -128,6 +132,59 @@ def _cmd_rl(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_camdm_train(args: argparse.Namespace) -> int:
+    from minimdm.camdm.train import load_train_config, train_camdm
+    from minimdm.config import with_changes
+
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)  # before the corpus is loaded
+    changes = _overrides(args.set or [])
+    if args.steps is not None:
+        changes["total_steps"] = args.steps
+    config = with_changes(load_train_config(args.config), changes, where="--set")
+    check_device("device (of the config)", config.device)
+    ckpt = train_camdm(
+        config,
+        out,
+        resume=not args.restart,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": _recorded_command("camdm train", args, 1)},
+    )
+    summary = {
+        "checkpoint": str(ckpt.paths.weights),
+        "steps": ckpt.step,
+        "train_seconds": ckpt.metadata.get("train_seconds"),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+def _cmd_camdm_classifier(args: argparse.Namespace) -> int:
+    from minimdm.camdm.classifier import load_classifier_config, train_classifier
+    from minimdm.config import with_changes
+
+    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
+    check_output_dir("--out", out)
+    config = with_changes(
+        load_classifier_config(args.config), _overrides(args.set or []), where="--set"
+    )
+    ckpt = train_classifier(
+        config,
+        out,
+        progress=not args.quiet,
+        num_threads=args.threads,
+        metadata={"command": _recorded_command("camdm classifier", args, 1)},
+    )
+    summary = {
+        "checkpoint": str(ckpt.paths.weights),
+        "heldout_accuracy": ckpt.metadata.get("heldout_accuracy"),
+        "train_seconds": ckpt.metadata.get("train_seconds"),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
 def _parse_start(text: str) -> tuple[str, int]:
     """``"clip:frame"`` -> (clip, frame); ``"clip"`` -> (clip, 0), taken as frame 1."""
     name, _, frame = text.rpartition(":")
@@ -152,6 +209,8 @@ def _check_kind(ckpt, command: str) -> None:
     hint = {
         "aamdm_motion": " (AAMDM models sample with minimdm.aamdm.eval.rollout_aamdm)",
         "policy": " (a steering policy runs on its base model with minimdm.rl.rollout.steer)",
+        "camdm": " (CAMDM runs with minimdm.camdm.controller.CAMDMController)",
+        "style_classifier": " (a style classifier: minimdm.camdm.classifier.predict_styles)",
     }.get(ckpt.kind, "")
     raise InputError(
         f"--checkpoint must hold an A-MDM, MVAE or MSE model (kinds {', '.join(SAMPLED_KINDS)}) "
@@ -242,6 +301,23 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from minimdm.fast import export_onnx, frame_graph
+    from minimdm.fast.graphs import load
+
+    src = Path(args.onnx)
+    default = Path(f"{(src.parent if src.suffix == '.safetensors' else src).name}.onnx")
+    out = check_output_file("--out", args.out or default, (".onnx",))  # before any work
+    graph = frame_graph(load(args.onnx), steps=args.steps, eta=args.eta)
+    data = export_onnx(graph, out, weights=args.weights)
+    print(json.dumps({
+        "out": str(out), "kind": graph.kind, "bytes": len(data), "state_dim": graph.state_dim,
+        "noise_dim": graph.noise_dim, "inputs": ["state", *(n for n, _, _ in graph.extra_inputs),
+                                                  "noise"],
+    }))  # fmt: skip
+    return 0
+
+
 def _cmd_data_list(args: argparse.Namespace) -> int:
     from minimdm.motion.corpora import data_home, list_corpora
 
@@ -310,6 +386,30 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(fn=_cmd_rl)
 
+    c = add("camdm", help="train CAMDM or its style classifier (chapter 9)")
+    csub = c.add_subparsers(dest="camdm_command", required=True)
+    cadd = functools.partial(csub.add_parser, parents=[common])
+    for verb, fn, what in (
+        ("train", _cmd_camdm_train, "the CAMDM denoiser, e.g. configs/camdm.yaml"),
+        (
+            "classifier",
+            _cmd_camdm_classifier,
+            "the style classifier, configs/camdm_classifier.yaml",
+        ),
+    ):
+        ct = cadd(verb, help=f"train {what.split(',')[0]}")
+        ct.add_argument("config", help=f"a YAML file of configs/: {what}")
+        ct.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
+        ct.add_argument(
+            "--set", action="append", metavar="KEY=VALUE", help="override a config field"
+        )
+        ct.add_argument("--threads", type=_int_arg(1), default=1, help="torch CPU threads")
+        ct.add_argument("--quiet", action="store_true", help="no progress bar")
+        if verb == "train":
+            ct.add_argument("--steps", type=_int_arg(1), help="override total_steps")
+            ct.add_argument("--restart", action="store_true", help="ignore a training state")
+        ct.set_defaults(fn=fn)
+
     s = add("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
     s.add_argument("--frames", type=_int_arg(1), required=True, help="frames to generate")
@@ -336,6 +436,20 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
+
+    x = add("export", help="write a checkpoint's frame as one ONNX graph, for game engines")
+    x.add_argument(
+        "--onnx", required=True, metavar="CHECKPOINT",
+        help="checkpoint folder, file or shipped name (kinds amdm, aamdm_motion, policy)",
+    )  # fmt: skip
+    x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
+    x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
+    x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
+    x.add_argument(
+        "--weights", choices=("fp32", "int8"), default="fp32",
+        help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",
+    )  # fmt: skip
+    x.set_defaults(fn=_cmd_export)
 
     d = add("data", help="list and download motion corpora")
     dsub = d.add_subparsers(dest="data_command", required=True)
@@ -375,7 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     except (*USER_ERRORS, DownloadError, NonFiniteFrameError) as e:
         if args.debug:
             raise
-        where = " ".join(filter(None, [args.command, getattr(args, "data_command", None)]))
+        sub = getattr(args, "data_command", None) or getattr(args, "camdm_command", None)
+        where = " ".join(filter(None, [args.command, sub]))
         message = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())
         print(f"minimdm {where}: error: {message}", file=sys.stderr)
         return 2

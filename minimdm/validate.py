@@ -404,9 +404,8 @@ def check_output_file(name: str, value: Any, suffixes: Sequence[str] | None = No
         raise _bad(name, "a file path", value, InputTypeError)
     path = Path(value)
     if suffixes is not None and path.suffix.lower() not in suffixes:
-        raise InputError(
-            f"{name} must end in {', '.join(suffixes[:-1])} or {suffixes[-1]}, got {path.name!r}"
-        )
+        ends = f"{', '.join(suffixes[:-1])} or {suffixes[-1]}" if len(suffixes) > 1 else suffixes[0]
+        raise InputError(f"{name} must end in {ends}, got {path.name!r}")
     if path.is_dir() or str(value).endswith(os.sep):
         raise InputError(f"{name} must be a file path, got {str(value)!r}, which is a folder")
     _check_writable_dir(name, path.parent, value)

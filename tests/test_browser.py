@@ -6,7 +6,8 @@ console error, no request outside the book (requests elsewhere are blocked and r
 rendered maths (``mjx-container`` elements, no raw ``\\(``) on the chapters. On the player page:
 the canvases are not blank, scrubbing or turning one player changes its picture and not the
 other's, and a page holding only a later player (no code of its own) still works from the copy
-the first one left in the browser.
+the first one left in the browser. On every chapter page that carries players, each one mounts
+(its poster gives way) and draws a picture that is not blank.
 
 It needs Chromium (``apt-get install -y chromium``; Playwright's own browser download is never
 used) and is skipped without it, except in CI (``CI=true``), where it fails instead.
@@ -249,7 +250,7 @@ def test_book_pages_are_offline_and_render_maths(browser, site):
     pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
     pages += ["intro.html", "notation.html", "glossary.html", "bibliography.html"]
     assert len(pages) >= 8
-    v = Visit(browser, base)
+    v, n_players = Visit(browser, base), 0
     for name in pages:
         p = v.open(name)
         if name.startswith("notebooks/"):
@@ -265,8 +266,49 @@ def test_book_pages_are_offline_and_render_maths(browser, site):
                 assert raw not in prose, f"{name}: raw TeX {raw!r} in the text"
             if name.endswith("03_amdm.html"):
                 keep(p, "chapter3", full_page=False)
+            n_players += check_players(p, name)
         v.check_clean()
     v.context.close()
+    assert n_players >= 4, f"only {n_players} players in the chapters"
+
+
+def check_players(p, name: str) -> int:
+    """Every player on a chapter page mounts (its poster gives way), draws a picture that is not
+    blank and keeps its labels inside it; each is paused first, so that the page's players do not
+    all play at once."""
+    players = p.locator(".minimdm-player")
+    n = players.count()
+    if n == 0:
+        return 0
+    p.wait_for_function(
+        f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
+        timeout=30_000,
+    )
+    for i in range(n):  # scrubbing pauses a player
+        players.nth(i).locator("input[type=range]").evaluate(
+            "s => { s.value = 0; s.dispatchEvent(new Event('input', {bubbles: true})); }"
+        )
+    assert players.locator(".mmp-poster").count() == 0, f"{name}: a poster was not replaced"
+    for i in range(n):
+        players.nth(i).scroll_into_view_if_needed()
+        settle(p)
+        img = shot(players.nth(i).locator("canvas"))
+        assert img.std() > 8, f"{name}: player {i} looks blank (std {img.std():.1f})"
+        cut = players.nth(i).evaluate(
+            """e => { const c = e.querySelector('canvas').getBoundingClientRect();
+            return [...e.querySelectorAll('.mmp-label')]
+              .filter(l => l.textContent && l.style.visibility !== 'hidden')
+              .filter(l => { const r = l.getBoundingClientRect();
+                             return r.top < c.top - 1 || r.bottom > c.bottom + 1; })
+              .map(l => l.textContent); }"""
+        )
+        assert cut == [], f"{name}: player {i} cuts off its labels {cut}"
+        folder = os.environ.get("MINIMDM_SCREENSHOTS")
+        if folder:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            shot_path = Path(folder) / f"{Path(name).stem}_player{i}.png"
+            players.nth(i).screenshot(path=str(shot_path))
+    return n
 
 
 def test_exercise_solutions_are_hidden_until_clicked(browser, site):

@@ -34,6 +34,8 @@ from minimdm.amdm.models import (
     MVAEConfig,
     timestep_embedding,
 )
+from minimdm.camdm.classifier import ClassifierNetConfig, StyleClassifier
+from minimdm.camdm.model import CAMDM, CAMDMConfig, Conditions
 from minimdm.checkpoint import load_checkpoint
 from minimdm.rl.policy import PolicyNet
 
@@ -133,6 +135,39 @@ def old_mvae(sd, cfg: dict, x, cond, z) -> tuple[Tensor, Tensor, Tensor]:
     return mu, logvar.clamp(-20.0, 10.0), _lin(sd, "output", torch.cat([h, z], -1))
 
 
+def old_camdm(sd, cfg: dict, x_t, t, past, style, traj) -> Tensor:
+    """CAMDM with separate condition tokens (eq. 1): pre-LN encoder layers, GELU, final LN."""
+    L, heads = cfg["latent"], cfg["heads"]
+    e = old_time_mlp(sd, "time_embed.", timestep_embedding(t, L))
+    conds = [e, sd["style_embed.weight"][style]]
+    conds += [old_time_mlp(sd, "past_token.", past.flatten(1))]
+    conds += [old_time_mlp(sd, "traj_token.", traj.flatten(1))]
+    sd["null_past"]  # noqa: B018  (used only for a dropped past)
+    h = torch.cat([torch.stack(conds, 1), _lin(sd, "frame_in", x_t)], 1) + sd["position"]
+    B, n, _ = h.shape
+    for i in range(cfg["layers"]):
+        p = f"encoder.layers.{i}."
+        a = _ln(sd, f"{p}norm1", h)
+        q, k, v = F.linear(
+            a, sd[f"{p}self_attn.in_proj_weight"], sd[f"{p}self_attn.in_proj_bias"]
+        ).chunk(3, -1)
+        split = lambda z: z.view(B, n, heads, L // heads).transpose(1, 2)  # noqa: E731
+        w = torch.softmax(split(q) @ split(k).transpose(-1, -2) / math.sqrt(L // heads), -1)
+        att = (w @ split(v)).transpose(1, 2).reshape(B, n, L)
+        h = h + _lin(sd, f"{p}self_attn.out_proj", att)
+        h = h + _lin(sd, f"{p}linear2", F.gelu(_lin(sd, f"{p}linear1", _ln(sd, f"{p}norm2", h))))
+    h = _ln(sd, "encoder.norm", h)
+    return _lin(sd, "frame_out", h[:, 4:])
+
+
+def old_style_classifier(sd, x) -> tuple[Tensor, Tensor]:
+    h = x.transpose(1, 2)
+    for i, stride in ((0, 1), (2, 2), (4, 2)):
+        h = F.gelu(F.conv1d(h, sd[f"convs.{i}.weight"], sd[f"convs.{i}.bias"], stride, 2))
+    f = _lin(sd, "project", torch.cat([h.mean(-1), h.amax(-1)], -1))
+    return f, _lin(sd, "head.2", F.gelu(f))
+
+
 # ---- comparing a network with its reference ---------------------------------------------------
 
 
@@ -194,6 +229,21 @@ def compare(model: torch.nn.Module, prefix: str = "", sd: Recorder | None = None
                 i += 2
             assert torch.equal(model(obs), _lin(sd, "head", h))
             sd["log_std"]  # noqa: B018  (kept for sampling; the mean is the action)
+        elif isinstance(model, CAMDM):  # torch's attention kernels: equal to rounding
+            c = model.config
+            x, past = _randn(g, B, c.future, c.dim), _randn(g, B, c.past, c.dim)
+            traj, style, t = (
+                _randn(g, B, c.future, 4),
+                torch.arange(B) % c.n_styles,
+                torch.arange(B),
+            )
+            want = old_camdm(sd, vars(c), x, t, past, style, traj)
+            got = model(x, t, Conditions(past, style, traj))
+            torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+        elif isinstance(model, StyleClassifier):
+            x = _randn(g, B, 59, model.config.in_dim)
+            feats, logits = old_style_classifier(sd, x)
+            assert torch.equal(model.features(x), feats) and torch.equal(model(x), logits)
         else:
             raise AssertionError(f"no reference for {type(model).__name__}")
     return sd
@@ -236,6 +286,8 @@ RANDOM = {
     "generator_uncond": lambda: DDGANGenerator(GeneratorConfig(2, 0, 3, 16, 2, 8)),
     "discriminator": lambda: DDGANDiscriminator(DiscriminatorConfig(2, 2, 16, 3, 8, fourier=4)),
     "discriminator_uncond": lambda: DDGANDiscriminator(DiscriminatorConfig(2, 0, 16, 2, 8)),
+    "camdm": lambda: CAMDM(CAMDMConfig(9, 3, 2, 4, latent=16, layers=2, heads=2, ff=32)),
+    "style_classifier": lambda: StyleClassifier(ClassifierNetConfig(7, 3, 8, 4)),
 }
 
 

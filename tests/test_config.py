@@ -111,11 +111,15 @@ def test_with_changes_copies_checks_and_converts():
 
 
 def test_every_shipped_config_loads_into_its_dataclass():
+    from minimdm.camdm.classifier import ClassifierConfig
+    from minimdm.camdm.train_config import CAMDMTrainConfig
     from minimdm.rl.train import RLConfig
 
     for f in sorted((ROOT / "configs").glob("*.yaml")):
         cls = AAMDMTrainConfig if f.name.startswith("aamdm") else TrainConfig
         cls = RLConfig if f.name.startswith("rl_") else cls
+        cls = CAMDMTrainConfig if f.name.startswith("camdm") else cls
+        cls = ClassifierConfig if f.name == "camdm_classifier.yaml" else cls
         cfg = load_config(f, cls)
         for name, value in vars(cfg).items():  # every float field holds a float
             if isinstance(getattr(cls, name, None), float) and value is not None:

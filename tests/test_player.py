@@ -271,3 +271,20 @@ def test_in_an_ipython_shell_a_rerun_of_the_first_cell_carries_the_code_again(mo
         assert carried == {0: [True, False], 1: [True, False], 2: [False, False], 3: [True, False]}
     finally:
         InteractiveShell.clear_instance()
+
+
+def test_stored_notebooks_carry_the_current_player_code():
+    # a chapter re-executed before player.js changed would publish the old player: its code key
+    # (a hash of three.js + player.js) must be the current one
+    import re
+    from pathlib import Path
+
+    from minimdm.viz.webplayer import _library
+
+    key = _library()[0]
+    stale = {}
+    for nb in sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb")):
+        keys = set(re.findall(r"minimdm-player-[0-9a-f]{12}", nb.read_text()))
+        if keys - {key}:
+            stale[nb.name] = sorted(keys - {key})
+    assert not stale, f"re-execute these notebooks (their players carry old code): {stale}"

@@ -300,10 +300,9 @@ def test_interrupted_save_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
 
 def test_configs_load_and_build(tmp_path):
     # aamdm_*.yaml are AAMDM's own configs (tests/test_aamdm.py loads them), rl_*.yaml the
-    # steering policies' (tests/test_config.py).
-    files = sorted(
-        f for f in (ROOT / "configs").glob("*.yaml") if not f.name.startswith(("aamdm", "rl_"))
-    )
+    # steering policies' and camdm*.yaml CAMDM's (tests/test_config.py).
+    own = ("aamdm", "rl_", "camdm")
+    files = sorted(f for f in (ROOT / "configs").glob("*.yaml") if not f.name.startswith(own))
     assert {"amdm.yaml", "amdm_paper.yaml", "mse.yaml", "mvae.yaml"} <= {f.name for f in files}
     for f in files:
         cfg = load_config(f)

@@ -20,6 +20,7 @@ guidance study, the dataset row, frames per second) live in :mod:`minimdm.studie
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,7 @@ from torch import Tensor
 from minimdm.aamdm.model import Guide
 from minimdm.aamdm.motion import AAMDMMotion
 from minimdm.amdm.sampling import Rollout, autoregress
+from minimdm.diffusion import NoiseTape
 from minimdm.motion import metrics
 from minimdm.motion.features import StartPose, decode, start_pose_of
 from minimdm.motion.skeleton import wrap_angle
@@ -37,6 +39,7 @@ __all__ = [
     "INITIAL_CLIPS",
     "initial_states",
     "direction_guide",
+    "aamdm_frame",
     "rollout_aamdm",
     "local_poses",
     "pose_diversity",
@@ -105,6 +108,27 @@ def direction_guide(model: AAMDMMotion, delta: Tensor, scale: float) -> Guide:
 
 
 @torch.no_grad()
+def aamdm_frame(
+    model: AAMDMMotion,
+    frame: Tensor,
+    generator: torch.Generator | NoiseTape | None = None,
+    guide: Guide | None = None,
+    T_adm: int | None = None,
+) -> Tensor:
+    """One auto-regressive step of the motion AAMDM: ``[xz, y]`` (B, XZ + D) of the next frame.
+
+    The transition samples the next standardised latent ``xz`` from the previous one (the first
+    XZ columns of ``frame``; generation + polishing, :func:`~minimdm.aamdm.model.aamdm_sample`),
+    then the decoder gives its pose features ``y`` (A-MDM units). ``generator`` may be a
+    :class:`~minimdm.diffusion.NoiseTape` (the fast path, :mod:`minimdm.fast`).
+    """
+    xz = model.transition.sample(
+        frame[:, : model.xz_dim].contiguous(), generator, guide=guide, T_adm=T_adm
+    )  # (B, XZ)
+    return torch.cat([xz, model.decode(xz)], dim=1)  # (B, XZ + D)
+
+
+@torch.no_grad()
 def rollout_aamdm(
     model: AAMDMMotion,
     init_y: Tensor,
@@ -118,14 +142,20 @@ def rollout_aamdm(
     direction: Tensor | float | None = None,
     guide_scale: float = 0.0,
     decode_positions: bool = True,
+    sampler: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
 ) -> Rollout:
     """Sample ``n_samples`` futures of ``n_frames`` from each initial frame (C, D), (C, 12).
 
     ``T_adm = 0`` skips polishing (the GAN's draft is the frame). ``direction`` (C,) or a
     number: the commanded world heading in radians; with ``guide_scale`` > 0 each frame is
     guided towards it (eq. 13; the command is converted to the current heading frame).
-    ``Rollout.normalized`` holds the standardised xz.
+    ``Rollout.normalized`` holds the standardised xz. ``sampler(frame, generator) -> frame``
+    replaces :func:`aamdm_frame` as the per-frame step, e.g. a
+    :class:`minimdm.fast.FastFrame` of the same model (the same chain as one graph); guidance
+    needs the eager step.
     """
+    if sampler is not None and (guide_scale > 0 or T_adm is not None):
+        raise ValueError("guidance and T_adm need the eager step: pass sampler=None with them")
     if init_y.dim() != 2 or init_x.dim() != 2 or init_y.shape[0] != init_x.shape[0]:
         raise ValueError(
             f"init_y and init_x must be (C, D) and (C, {model.config.x_dim}), got "
@@ -158,14 +188,15 @@ def rollout_aamdm(
     def step(f: int, frame: Tensor) -> Tensor:
         """Frame f as [xz, y] (C K, XZ + D): sample the latent, then decode the pose."""
         nonlocal heading
-        guide = None
-        if direction is not None and guide_scale > 0:
-            guide = direction_guide(model, wrap_angle(direction - heading), guide_scale)
-        xz = model.transition.sample(frame[:, :XZ].contiguous(), generator, guide=guide,
-                                     T_adm=T_adm)  # fmt: skip
-        y = model.decode(xz)  # (C K, D)
-        heading = heading + y[:, 2]  # the yaw rate d_r
-        return torch.cat([xz, y], dim=1)
+        if sampler is not None:
+            frame = sampler(frame, generator)
+        else:
+            guide = None
+            if direction is not None and guide_scale > 0:
+                guide = direction_guide(model, wrap_angle(direction - heading), guide_scale)
+            frame = aamdm_frame(model, frame, generator, guide=guide, T_adm=T_adm)
+        heading = heading + frame[:, XZ + 2]  # the yaw rate d_r
+        return frame
 
     frames = autoregress(  # (C K, F, XZ + D)
         step, torch.cat([xz0, y0], dim=1), n_frames,

@@ -57,6 +57,7 @@ from minimdm.diffusion import (
     check_finite,
     clamp_hook,
     clip_bounds,
+    gaussian,
     q_posterior_sample,
     q_sample,
     reverse_chain,
@@ -420,7 +421,7 @@ def aamdm_sample(
         _check_shape("x_start", x_start, (B, D))
         x = x_start.to(device)
     else:
-        x = torch.randn((B, D), generator=generator, device=device)
+        x = gaussian((B, D), generator, device)
     schedule = schedule.to(device)
     t_low = T - T_gan  # the first level below the GAN's
     # the GAN sees its own step index, t - T_adm

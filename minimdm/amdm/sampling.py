@@ -308,6 +308,7 @@ def rollout(
     decode_positions: bool = True,
     device: torch.device | str | None = None,
     progress: bool = False,
+    sampler: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
 ) -> Rollout:
     """Sample ``n_samples`` futures of ``n_frames`` frames from each initial state.
 
@@ -330,6 +331,9 @@ def rollout(
             :math:`\\sqrt{\\bar\\alpha_T}` (tiny), so an unclamped estimate can blow up.
         decode_positions: also decode global joint positions.
         progress: show a tqdm bar over frames.
+        sampler: ``sampler(x_prev, generator) -> x_f`` (normalized, (B, D)) replaces the eager
+            per-frame step :func:`next_frame`, e.g. a :class:`minimdm.fast.FastFrame` of the same
+            checkpoint: the same chain as one graph, with its own steps, eta and clamp.
 
     On the CPU, batches smaller than ``SMALL_BATCH`` run on one thread: they are bound by
     per-operation overhead, which more threads only increase.
@@ -347,6 +351,8 @@ def rollout(
     if steps is not None:
         steps = check_int("steps", steps, low=1)
     eta = check_number("eta", eta, low=0.0)
+    if sampler is not None and steps is not None:
+        raise InputError("steps belong to the sampler when one is given: pass steps=None")
     model, ckpt = _resolve(model_or_checkpoint, device)
     if not isinstance(model, (MLPDenoiser, MVAE, MLPRegressor)):
         where = f"checkpoint {ckpt.paths.weights} holds" if ckpt is not None else "got"
@@ -401,6 +407,8 @@ def rollout(
     cond = cond.repeat_interleave(K, dim=0)  # (C K, D), character-major
 
     def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
+        if sampler is not None:
+            return sampler(x_prev, generator)
         return next_frame(model, x_prev, generator, schedule, steps, eta, predicts, clip_x0)
 
     with num_threads(n_threads):

@@ -7,7 +7,9 @@ Notation follows Ho et al. (2020) and the A-MDM paper (Shi et al. 2024, §3.1):
   denotes clean data (the paper's :math:`x^0`), so that every sample in the reverse chain has a
   level: noise enters at ``T - 1`` and the last step leaves at ``-1``.
 * Every function is batched over the leading dimension, works on any device, and draws its
-  randomness from an explicit :class:`torch.Generator`.
+  randomness from an explicit :class:`torch.Generator`. The chain draws it through
+  :func:`gaussian`, which also takes a :class:`NoiseTape`: the noise drawn in advance, so that a
+  frame's whole chain can take its noise as an input (the fast path, :mod:`minimdm.fast`).
 
 **The reverse chain.** :func:`reverse_chain` is the library's only loop over denoising levels.
 At each level a *step rule* (:class:`StepRule`) asks its network for the clean estimate
@@ -68,9 +70,11 @@ from .schedule import (
     Denoiser,
     Hook,
     NoiseSchedule,
+    NoiseTape,
     X0Hook,
     check_finite,
     diffusion_loss,
+    gaussian,
     predict_eps_from_v,
     predict_eps_from_x0,
     predict_v,
@@ -87,6 +91,8 @@ __all__ = [
     "Denoiser",
     "ClipX0",
     "NoiseSchedule",
+    "NoiseTape",
+    "gaussian",
     "q_sample",
     "q_posterior",
     "q_posterior_sample",

@@ -14,6 +14,7 @@ from .schedule import (
     Hook,
     NoiseSchedule,
     X0Hook,
+    gaussian,
     predict_eps_from_v,
     predict_eps_from_x0,
     predict_x0_from_eps,
@@ -94,7 +95,7 @@ class DDPMStep(_DenoiserRule):
         mean, var = q_posterior(self.schedule, x0_hat, x_t, t)
         if t == 0:
             return mean
-        noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
+        noise = gaussian(x_t.shape, generator, x_t.device, x_t.dtype)
         return mean + var.sqrt() * noise
 
 
@@ -129,9 +130,7 @@ class DDIMStep(_DenoiserRule):
         )
         x = a_next.sqrt() * x0_hat + (1 - a_next - sigma**2).clamp(min=0).sqrt() * eps
         if t_next >= 0 and self.eta > 0:
-            x = x + sigma * torch.randn(
-                x.shape, generator=generator, device=x.device, dtype=x.dtype
-            )
+            x = x + sigma * gaussian(x.shape, generator, x.device, x.dtype)
         return x
 
 
@@ -169,7 +168,7 @@ class DDGANStep(_PosteriorRule):
 
     def predict(self, x_t, t, cond, generator):
         B = x_t.shape[0]
-        r = torch.randn((B, self.latent_dim), generator=generator, device=x_t.device)  # (B, R)
+        r = gaussian((B, self.latent_dim), generator, x_t.device)  # (B, R)
         out = self.gan(x_t, _levels(t, x_t) - self.t_offset, cond, r)
         _check_out(self.name, out, x_t)
         return out, None

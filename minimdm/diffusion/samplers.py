@@ -7,7 +7,16 @@ from torch import Tensor
 
 from .chain import DDIMStep, DDPMStep, chain_step, predict_x0, reverse_chain
 from .clamp import clamp_hook
-from .schedule import ClipX0, Denoiser, Hook, NoiseSchedule, X0Hook, check_finite, q_posterior
+from .schedule import (
+    ClipX0,
+    Denoiser,
+    Hook,
+    NoiseSchedule,
+    X0Hook,
+    check_finite,
+    gaussian,
+    q_posterior,
+)
 
 
 def _hooks(hook: Hook | None) -> list[Hook]:
@@ -78,7 +87,7 @@ def _check_inputs(
 def _start(shape, x_start, generator, device, dtype):
     if x_start is not None:
         return x_start.to(device=device, dtype=dtype)
-    return torch.randn(shape, generator=generator, device=device, dtype=dtype)
+    return gaussian(shape, generator, device, dtype)
 
 
 def _check_t_start(t_start: int | None, T: int) -> int:

@@ -21,6 +21,66 @@ ClipX0 = float | Sequence | Tensor | None
 """None, a float c (clamp to [-c, c]) or a per-feature pair (lo, hi): see clip_bounds."""
 
 
+class NoiseTape:
+    """Gaussian noise drawn in advance, handed to the reverse chain in place of a generator.
+
+    The step rules draw their noise through :func:`gaussian`; given a tape instead of a
+    :class:`torch.Generator`, each draw of shape ``(B, *s)`` takes the next ``prod(s)`` columns
+    of ``noise`` (B, N). A whole frame's chain then has its noise as an input, which is what lets
+    it be traced into one graph (:mod:`minimdm.fast`). :meth:`draw` fills a tape from a generator
+    with exactly the draws the chain would have made, in the same order, so that the chain gives
+    the same sample with the tape as with the generator.
+    """
+
+    def __init__(self, noise: Tensor) -> None:
+        if noise.dim() != 2:
+            raise ValueError(f"noise must have shape (B, N), got {tuple(noise.shape)}")
+        self.noise = noise  # (B, N)
+        self.used = 0
+        self.widths: list[int] = []
+        """The width of every draw taken so far, in order."""
+
+    def take(self, shape: tuple[int, ...], dtype: torch.dtype | None = None) -> Tensor:
+        """The next draw of ``shape`` (B, ...): ``prod(shape[1:])`` columns, reshaped."""
+        B, n = shape[0], math.prod(shape[1:])
+        if B != self.noise.shape[0] or self.used + n > self.noise.shape[1]:
+            raise ValueError(
+                f"the noise tape {tuple(self.noise.shape)} has no draw of shape {tuple(shape)} "
+                f"left after {self.used} columns"
+            )
+        out = self.noise[:, self.used : self.used + n].reshape(shape)
+        self.used += n
+        self.widths.append(n)
+        return out if dtype is None else out.to(dtype)
+
+    @staticmethod
+    def draw(
+        widths: Sequence[int],
+        batch: int,
+        generator: torch.Generator | None = None,
+        device: torch.device | str | None = None,
+    ) -> Tensor:
+        """(batch, sum(widths)) float32: one ``randn((batch, w))`` per width, in order."""
+        parts = [torch.randn((batch, int(w)), generator=generator, device=device) for w in widths]
+        return torch.cat(parts, dim=1)
+
+
+def gaussian(
+    shape: tuple[int, ...],
+    generator: torch.Generator | NoiseTape | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype | None = None,
+) -> Tensor:
+    """Standard normal noise of ``shape``: the one way the reverse chain draws its noise.
+
+    From ``generator`` (a :class:`torch.Generator` or None: ``torch.randn``), or the next
+    columns of a :class:`NoiseTape`.
+    """
+    if isinstance(generator, NoiseTape):
+        return generator.take(tuple(shape), dtype)
+    return torch.randn(shape, generator=generator, device=device, dtype=dtype)
+
+
 def check_finite(name: str, x: Tensor) -> None:
     """Raise ``ValueError`` naming ``name`` if ``x`` holds NaN or Inf."""
     if not torch.isfinite(x).all():
@@ -243,7 +303,7 @@ def q_posterior_sample(
     ``t = 0`` the posterior is a point mass on ``x0``.
     """
     mean, var = q_posterior(schedule, x0, x_t, t)
-    noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
+    noise = gaussian(x_t.shape, generator, x_t.device, x_t.dtype)
     return mean + var.sqrt() * noise
 
 

@@ -411,13 +411,16 @@ export async function mount(container, payload) {
     const half = Math.atan(Math.tan((camera.fov * Math.PI) / 360) * Math.min(1, camera.aspect));
     const corners = [0, 1, 2, 3, 4, 5, 6, 7].map((c) => new THREE.Vector3(
       c & 1 ? shown.max.x : shown.min.x, c & 2 ? shown.max.y : shown.min.y, c & 4 ? shown.max.z : shown.min.z));
+    // room above for labels: one row, or a stack of them when the characters overlay each other
+    const rows = payload.layout === "overlay" ? payload.motions.filter((m) => m.label).length : 1;
+    const roof = Math.max(0.3, 0.8 - (Math.max(rows, 1) - 1) * 40 / (stage.clientHeight || payload.height));
     const fits = (d) => {
       orbit.radius = d;
       orbit.update();
       camera.updateMatrixWorld();
       return corners.every((c) => {
         const q = c.clone().project(camera);
-        return q.z < 1 && Math.abs(q.x) < 0.94 && q.y > -0.94 && q.y < 0.8; // room for labels
+        return q.z < 1 && Math.abs(q.x) < 0.94 && q.y > -0.94 && q.y < roof;
       });
     };
     let lo = 0.3, hi = (shown.getBoundingSphere(new THREE.Sphere()).radius + 0.3) / Math.sin(half);
@@ -488,15 +491,17 @@ export async function mount(container, payload) {
       labels[i].style.top = `${((1 - p.y) / 2) * h}px`;
       labels[i].style.visibility = p.z < 1 ? "visible" : "hidden";
     });
-    // labels that would overlap stack upwards, so each stays readable
+    // labels that would overlap stack upwards, so each stays readable; a stack that reaches the
+    // top of the picture goes on below the head instead, so that no label is cut off
     const placed = [];
+    const free = (x, y, w, h) => placed.every((q) => Math.abs(q.x - x) >= (q.w + w) / 2 + 2 || Math.abs(q.y - y) >= h + 1);
     labels.forEach((lab) => {
       if (lab.style.display === "none") return;
-      let x = parseFloat(lab.style.left), y = parseFloat(lab.style.top);
-      const w = lab.offsetWidth, h = lab.offsetHeight;
-      for (const q of placed) {
-        if (Math.abs(q.x - x) < (q.w + w) / 2 + 2 && Math.abs(q.y - y) < h + 1) y = q.y - h - 2;
-      }
+      const x = parseFloat(lab.style.left), w = lab.offsetWidth, h = lab.offsetHeight;
+      const y0 = Math.max(parseFloat(lab.style.top), h + 2); // the label's bottom edge
+      let y = y0;
+      for (let k = 1; !free(x, y, w, h) && y0 - k * (h + 2) >= h + 2; k++) y = y0 - k * (h + 2);
+      for (let k = 1; !free(x, y, w, h) && k <= labels.length; k++) y = y0 + k * (h + 2);
       lab.style.top = `${y}px`;
       placed.push({ x, y, w });
     });

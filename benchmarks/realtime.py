@@ -1,0 +1,241 @@
+"""Real time on a CPU: the eager per-frame step against the fast path, in one run (issue 16).
+
+For each model, batch (1 and 64) and thread count (one and all), it times one frame, every
+denoising step, three ways on the same inputs:
+
+* ``eager``: the library's own step in PyTorch (:class:`minimdm.fast.FrameGraph.frame`, i.e.
+  ``next_frame`` / ``aamdm_frame`` / the policy and its steerer);
+* ``fast``: the same step traced into one ONNX graph, run by ONNX Runtime
+  (:class:`minimdm.fast.FastFrame`), its noise drawn from the same generator; it matches eager
+  within 1e-4 (``max_abs_diff``);
+* ``fast_int8``: that graph with 8-bit block weights (``weights="int8"``), an approximation
+  (``int8_rel_rms``: its frame's RMS difference from fp32's over the frame's RMS).
+
+Models: the book's A-MDM (6 x 384, T = 20, DDPM, and DDIM over 5 steps), AAMDM (3 GAN + 2
+polishing steps, then the decoder), the joystick policy steering A-MDM, and a paper-size A-MDM
+(10 x 1024, T = 40) with random weights (speed does not depend on the weights' values). It also
+records the engine choice at batch 1 on one thread (TorchScript, ONNX Runtime, and with
+``--compile`` torch.compile), the load of the machine (``uptime``), the memory bandwidth and
+the goals with the arithmetic that bounds them. Times are medians of ``--repeats`` blocks, the
+engines interleaved, as the machine is shared.
+
+    python benchmarks/realtime.py                # ~6 min on the 2-core build machine
+    python benchmarks/realtime.py --quick        # the book A-MDM only, fewer repeats
+
+Prints JSON lines and appends them to ``benchmarks/results/realtime.jsonl``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+import warnings
+
+import numpy as np
+import torch
+from common import ROOT, emit, hardware
+
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
+from minimdm.control.core import ControlModel
+from minimdm.diffusion import NoiseSchedule
+from minimdm.fast import AMDMFrame, FastFrame, export_onnx, frame_graph
+from minimdm.utils import num_threads
+
+RESULTS = ROOT / "benchmarks" / "results" / "realtime.jsonl"
+GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0}
+"""Issue 16's goals, ms per frame on one core at batch 1."""
+
+
+def load() -> dict:
+    """The machine's load average and uptime line (the machine is shared)."""
+    one, five, fifteen = os.getloadavg()
+    return {"loadavg": [round(one, 2), round(five, 2), round(fifteen, 2)]}
+
+
+def cpu_flags() -> dict:
+    """The CPU model and its AVX-512 flags (bf16, vnni), from /proc/cpuinfo."""
+    try:
+        text = open("/proc/cpuinfo").read()
+    except OSError:
+        return {}
+    model = next((ln.split(":", 1)[1].strip() for ln in text.splitlines()
+                  if ln.startswith("model name")), None)  # fmt: skip
+    flags = next((ln.split(":", 1)[1].split() for ln in text.splitlines()
+                  if ln.startswith("flags")), [])  # fmt: skip
+    return {"cpu_model": model, "avx512": sorted(f for f in flags if f.startswith("avx512"))}
+
+
+def bandwidth(mb: int, seconds: float = 0.3) -> float:
+    """GB/s of one thread summing a float32 array of ``mb`` MB again and again."""
+    a = np.ones(mb * 2**18, dtype=np.float32)
+    a.sum()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a.sum()
+        n += 1
+    return round(n * a.nbytes / (time.perf_counter() - t0) / 1e9, 1)
+
+
+def interleaved(fns: dict, repeats: int, block_s: float = 0.1) -> dict[str, float]:
+    """Median ms per call of each function, timed in blocks taken in turn."""
+    calls = {}
+    for name, fn in fns.items():
+        fn()  # warm-up
+        t0 = time.perf_counter()
+        fn()
+        calls[name] = max(1, int(block_s / max(time.perf_counter() - t0, 1e-6)))
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            for _ in range(calls[name]):
+                fn()
+            times[name].append((time.perf_counter() - t0) / calls[name] * 1e3)
+    return {k: round(statistics.median(v), 3) for k, v in times.items()}
+
+
+def paper_graph() -> AMDMFrame:
+    """The paper's denoiser size (A-MDM §7: 10 layers of 1024, T = 40), random weights."""
+    torch.manual_seed(0)
+    D = 255  # the book's frame size
+    net = MLPDenoiser(DenoiserConfig(D, D, 1024, 10, 128, "eps")).eval()
+    return AMDMFrame(ControlModel(net, None, NoiseSchedule("cosine", 40), "eps", 3.0))
+
+
+def inputs(graph, batch: int):
+    g = torch.Generator().manual_seed(0)
+    state = 0.5 * torch.randn(batch, graph.state_dim, generator=g)
+    extra = {n: torch.randn(batch, w, generator=g) for n, w, _ in graph.extra_inputs}
+    return state, extra
+
+
+def frame_arithmetic(graph) -> dict:
+    """A-MDM at batch 1: every denoising step reads every weight of the denoiser once."""
+    cm = getattr(graph, "cm", None)
+    if cm is None:
+        return {}
+    params = sum(p.numel() for p in cm.net.parameters())
+    calls = len(graph.describe()["sampler"]["levels"])
+    return {"params": params, "network_calls_per_frame": calls,
+            "fp32_weight_MB_per_frame": round(4 * params * calls / 1e6, 1),
+            "GFLOP_per_frame_batch1": round(2 * params * calls / 1e9, 3)}  # fmt: skip
+
+
+def engines(graph, repeats: int, compile_too: bool) -> dict:
+    """The engine choice: one frame at batch 1 on one thread, eager and three compiled forms."""
+    state, extra = inputs(graph, 1)
+    noise = graph.noise(1, torch.Generator().manual_seed(0))
+    args = (state, *extra.values(), noise)
+    out: dict = {}
+    with num_threads(1), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ts = torch.jit.trace(graph, args, check_trace=False).eval()
+        ts = torch.jit.optimize_for_inference(torch.jit.freeze(ts))
+        fast = FastFrame(export_onnx(graph), threads=1)
+        fns = {
+            "eager": lambda: graph(*args),
+            "torchscript": lambda: ts(*args),
+            "onnxruntime": lambda: fast(state, noise=noise, **extra),
+        }
+        if compile_too:
+            t0 = time.perf_counter()
+            compiled = torch.compile(graph)
+            compiled(*args)
+            out["torch_compile_seconds"] = round(time.perf_counter() - t0, 1)
+            fns["torch_compile"] = lambda: compiled(*args)
+        out["ms_per_frame"] = interleaved(fns, repeats)
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--repeats", type=int, default=7, help="timed blocks per engine (median)")
+    p.add_argument("--quick", action="store_true", help="the book A-MDM only, 3 repeats")
+    p.add_argument("--compile", action="store_true", help="also time torch.compile (slow)")
+    p.add_argument("--out", default=str(RESULTS), help="append the JSON lines here")
+    args = p.parse_args()
+    repeats = 3 if args.quick else args.repeats
+    out = None if args.quick else args.out
+    all_threads = os.cpu_count() or 1
+    run = {"bench": "realtime", "run": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    hw = {**hardware("cpu"), **cpu_flags()}
+    import onnxruntime
+
+    hw["onnxruntime"] = onnxruntime.__version__
+    emit({**run, "record": "machine", "hardware": hw, "load_start": load(),
+          "bandwidth_GBps_1thread": {"8MB": bandwidth(8), "24MB": bandwidth(24),
+                                     "256MB": bandwidth(256)}}, out)  # fmt: skip
+
+    print("building graphs ...", flush=True)
+    graphs = {"amdm": frame_graph("amdm"), "amdm_ddim5": frame_graph("amdm", steps=5)}
+    if not args.quick:
+        graphs.update({"aamdm": frame_graph("aamdm"), "rl_joystick": frame_graph("rl_joystick"),
+                       "paper_10x1024": paper_graph()})  # fmt: skip
+    t0 = time.perf_counter()
+    onnx = {k: (export_onnx(g), export_onnx(g, weights="int8")) for k, g in graphs.items()}
+    emit({**run, "record": "export", "seconds": round(time.perf_counter() - t0, 1),
+          "bytes": {k: [len(a), len(b)] for k, (a, b) in onnx.items()}}, out)  # fmt: skip
+
+    emit({**run, "record": "engines", "model": "amdm", "batch": 1, "threads": 1,
+          **engines(graphs["amdm"], repeats, args.compile), "load": load()}, out)  # fmt: skip
+
+    results = {}
+    for name, graph in graphs.items():
+        for threads in sorted({1, all_threads}):
+            fp32 = FastFrame(onnx[name][0], threads=threads)
+            int8 = FastFrame(onnx[name][1], threads=threads)
+            for batch in (1, 64):
+                state, extra = inputs(graph, batch)
+                gen = torch.Generator()
+                # accuracy on the same noise: fp32 against eager, int8 against fp32
+                with torch.no_grad(), num_threads(threads):
+                    eager = graph.frame(state, gen.manual_seed(1), *extra.values())
+                a = fp32(state, gen.manual_seed(1), **extra)
+                b = int8(state, gen.manual_seed(1), **extra)
+                diff = (a - eager).abs().max().item()
+                rel = ((b - a).pow(2).mean().sqrt() / a.pow(2).mean().sqrt()).item()
+
+                def eager_frame(graph=graph, state=state, extra=extra, gen=gen):
+                    with torch.no_grad():
+                        graph.frame(state, gen, *extra.values())
+
+                with num_threads(threads):
+                    ms = interleaved({
+                        "eager": eager_frame,
+                        "fast": lambda s=state, e=extra, f=fp32, g=gen: f(s, g, **e),
+                        "fast_int8": lambda s=state, e=extra, f=int8, g=gen: f(s, g, **e),
+                    }, repeats)  # fmt: skip
+                rec = {**run, "record": "speed", "model": name, "batch": batch,
+                       "threads": threads, **frame_arithmetic(graph),
+                       "ms_per_frame": ms,
+                       "speedup": round(ms["eager"] / ms["fast"], 2),
+                       "speedup_int8": round(ms["eager"] / ms["fast_int8"], 2),
+                       "character_frames_per_s_fast": round(batch / ms["fast"] * 1e3, 1),
+                       "max_abs_diff": float(f"{diff:.2g}"), "int8_rel_rms": round(rel, 4),
+                       "weights": "random" if name.startswith("paper") else "shipped",
+                       "load": load()}  # fmt: skip
+                results[name, batch, threads] = rec
+                emit(rec, out)
+
+    for name, goal in GOALS_MS.items():
+        if (name, 1, 1) not in results:
+            continue
+        r = results[name, 1, 1]
+        ms = r["ms_per_frame"]
+        best = min(ms["fast"], ms["fast_int8"])
+        mb = r["fp32_weight_MB_per_frame"]
+        emit({**run, "record": "goal", "model": name, "goal_ms": goal, "batch": 1, "threads": 1,
+              "eager_ms": ms["eager"], "fast_ms": ms["fast"], "fast_int8_ms": ms["fast_int8"],
+              "met_fp32": ms["fast"] <= goal, "met_int8": ms["fast_int8"] <= goal,
+              "met": best <= goal,
+              # weights streamed per frame / time: the bandwidth the fp32 graph achieves
+              "fp32_weights_GBps": round(mb / ms["fast"], 1),
+              "int8_weights_GBps": round(mb / 4 * 1.125 / ms["fast_int8"], 1),
+              "GFLOPs_fp32": round(r["GFLOP_per_frame_batch1"] / ms["fast"] * 1e3, 1),
+              "load": load()}, out)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,376 @@
+"""The CAMDM run-time controller (Chen et al. 2024, §3.2-3.3), on the library's one rollout loop.
+
+A joystick gives, per frame and character, a desired ground velocity, a facing and a style
+(:class:`Commands`). The controller keeps the character's last P frames and a *plan* of F
+future frames. Each frame of :func:`minimdm.amdm.sampling.autoregress` applies the next frame
+of the plan; it re-plans when M frames (15) have been applied, or at once when the input
+changes. A plan:
+
+1. puts the last P frames in the frame of the current one (:func:`~minimdm.camdm.data.
+   to_canonical`);
+2. draws the user's future trajectory, a critically damped spring from the character's
+   velocity and turning rate to the joystick's (:mod:`~minimdm.camdm.trajectory`);
+3. takes what is left of the last plan's predicted trajectory, extends it to F points by
+   recycling its last K points (HFTE; ``extend=False``: the user's points fill the gap, the
+   ablation "w/o HFTE"), and blends it with the user's;
+4. samples the future with 8 denoising steps (:func:`~minimdm.camdm.sampling.sample_future`),
+   with CFG on the past motion at ``gamma_switch`` (0.7) for re-plans within ``switch_frames``
+   of a style change, else at ``gamma`` (1: the conditional model alone).
+
+:meth:`CAMDMController.plan` is one such sampling call from given past motion and trajectory.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from minimdm.amdm.sampling import autoregress
+from minimdm.checkpoint import Checkpoint
+from minimdm.motion.data import Clip
+from minimdm.motion.features import Normalizer
+from minimdm.motion.skeleton import Skeleton, wrap_angle
+from minimdm.utils import num_threads
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    check_generator,
+    check_int,
+    check_skeleton,
+    describe,
+)
+
+from .data import CAMDMLayout, frame_positions, headings, to_canonical, to_world, world_frames
+from .model import CAMDM, Conditions
+from .sampling import sample_future
+from .train import load_camdm
+from .trajectory import blend_trajectories, extend_trajectory, spring_headings, spring_positions
+
+__all__ = ["ControlConfig", "Commands", "ControlResult", "CAMDMController"]
+
+
+@dataclass
+class ControlConfig:
+    """How the controller runs (CAMDM §3.3)."""
+
+    M: int = 15
+    """Generated frames applied before re-planning while the input is unchanged."""
+    K: int = 15
+    """Predicted trajectory points HFTE recycles."""
+    extend: bool = True
+    """HFTE on; False is the ablation w/o HFTE."""
+    gamma: float = 1.0
+    """CFG-PM scale while the style is unchanged (1: the conditional model alone)."""
+    gamma_switch: float = 0.7
+    """CFG scale for re-plans within ``switch_frames`` of a style change."""
+    switch_frames: int = 30
+    """Frames after a style change that re-plans use ``gamma_switch``."""
+    guide: str = "past"
+    """What CFG drops: 'past' (CFG-PM) or 'style' (CFG-S, the rejected alternative)."""
+    halflife: float = 0.3
+    """Half-life of the velocity spring, seconds."""
+    halflife_facing: float = 0.3
+    """Half-life of the facing spring, seconds."""
+    blend_bias: float = 1.0
+    """The user's weight at point k of F is (k / F) ** blend_bias."""
+
+
+@dataclass
+class Commands:
+    """A joystick over N frames for B characters (world frame)."""
+
+    velocity: Tensor
+    """(B, N, 2) desired ground velocity, metres per second."""
+    facing: Tensor
+    """(B, N) desired heading, radians."""
+    style: Tensor
+    """(B, N) long: style indices (:meth:`CAMDMLayout.style_index` turns names into them)."""
+
+    @classmethod
+    def hold(cls, velocity: Any, facing: Any, style: Tensor, n: int, batch: int = 1) -> Commands:
+        """The same command for ``n`` frames: velocity (2,), facing (), style index ()."""
+        v = torch.as_tensor(velocity, dtype=torch.float32).expand(batch, n, 2)
+        h = torch.as_tensor(facing, dtype=torch.float32).expand(batch, n)
+        s = torch.as_tensor(style, dtype=torch.long).reshape(()).expand(batch, n)
+        return cls(v.clone(), h.clone(), s.clone())
+
+    def then(self, other: Commands) -> Commands:
+        """This command, then ``other``."""
+        return Commands(
+            torch.cat([self.velocity, other.velocity], 1),
+            torch.cat([self.facing, other.facing], 1),
+            torch.cat([self.style, other.style], 1),
+        )
+
+
+@dataclass
+class ControlResult:
+    """What :meth:`CAMDMController.run` made."""
+
+    frames: Tensor
+    """(B, N, D) world frames: root position and 6D local rotations."""
+    positions: Tensor
+    """(B, N, J, 3) global joint positions, metres, z-up."""
+    replans: list[int] = field(default_factory=list)
+    """The frames (0-based, of this run) at which a plan began."""
+    gammas: list[Tensor] = field(default_factory=list)
+    """The CFG scale of each plan, (B,) each."""
+    trajectories: list[Tensor] = field(default_factory=list)
+    """The controlling trajectory of each plan in the world, (B, F, 3): x, y, heading."""
+
+
+class CAMDMController:
+    """Drives characters with a CAMDM checkpoint (module docstring).
+
+    ``reset(start)`` sets the characters' last P frames; ``run(commands, n_frames)`` continues
+    from where the last run stopped, so a widget can drive it piece by piece.
+    """
+
+    def __init__(
+        self,
+        checkpoint: Checkpoint | str | os.PathLike,
+        config: ControlConfig | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        if isinstance(checkpoint, (str, os.PathLike)):
+            checkpoint = load_camdm(checkpoint, device=device)
+        if not isinstance(checkpoint, Checkpoint) or not isinstance(checkpoint.model, CAMDM):
+            raise InputTypeError(
+                f"checkpoint must be a CAMDM checkpoint, got {describe(checkpoint)}"
+            )
+        self.checkpoint = checkpoint
+        self.model: CAMDM = checkpoint.model.eval()
+        self.config = config or ControlConfig()
+        if self.config.guide not in ("past", "style"):
+            raise InputError(f"guide must be 'past' or 'style', got {self.config.guide!r}")
+        self.device = torch.device(device)
+        self.layout = CAMDMLayout.from_dict(checkpoint.feature_layout)
+        self.skeleton = Skeleton.from_dict(checkpoint.skeleton)
+        norms = checkpoint.normalizer
+        self.window_norm = Normalizer.from_dict(norms["window"])
+        self.traj_norm = Normalizer.from_dict(norms["traj"])
+        self.schedule = checkpoint.schedule(self.device)
+        self.history: Tensor | None = None
+
+    # ---------------------------------------------------------------- one planning call
+    @torch.no_grad()
+    def plan(
+        self,
+        past: Tensor,
+        style: Any,
+        trajectory: Tensor,
+        generator: torch.Generator | None = None,
+        gamma: float | Tensor = 1.0,
+        guide: str = "past",
+    ) -> Tensor:
+        """Sample the future ``(B, F, D)`` from past frames ``(B, P, D)`` and a trajectory
+        ``(B, F, 4)`` (x, y, cos, sin), all in the frame of the last past frame, and styles."""
+        L = self.layout
+        past = self._check("past", past, (L.past, L.dim), "frames of the model's skeleton")
+        B = past.shape[0]
+        traj = self._check("trajectory", trajectory, (L.future, 4), "x, y, cos, sin per point")
+        if traj.shape[0] != B:
+            raise InputError(
+                f"trajectory must have shape ({B}, {L.future}, 4) (one per past motion), got "
+                f"{tuple(traj.shape)}"
+            )
+        s = L.style_index(style).to(self.device)
+        if s.numel() == 1:
+            s = s.expand(B)
+        elif s.shape != (B,):
+            raise InputError(f"style must be one style or {B} (one per past motion), got {len(s)}")
+        check_generator("generator", generator, self.device)
+        P = L.past
+        mean = self.window_norm.mean.view(-1, L.dim).to(self.device)
+        std = self.window_norm.std.view(-1, L.dim).to(self.device)
+        cond = Conditions(
+            (past.to(self.device) - mean[:P]) / std[:P],
+            s,
+            self.traj_norm.normalize(traj.to(self.device).flatten(1)).view_as(traj),
+        )
+        x0 = sample_future(self.model, self.schedule, cond, generator, gamma=gamma, guide=guide)
+        return x0 * std[P:] + mean[P:]  # (B, F, D)
+
+    def _check(self, name: str, x: Any, shape: tuple[int, int], words: str) -> Tensor:
+        if not isinstance(x, Tensor):
+            raise InputTypeError(
+                f"{name} must be a tensor of shape (B, {shape[0]}, {shape[1]}), got {describe(x)}"
+            )
+        if x.dim() != 3 or tuple(x.shape[1:]) != shape:
+            raise InputError(
+                f"{name} must have shape (B, {shape[0]}, {shape[1]}) ({words}), "
+                f"got {tuple(x.shape)}"
+            )
+        if not torch.isfinite(x).all():
+            where = (~torch.isfinite(x)).nonzero()[0].tolist()
+            raise InputError(
+                f"{name} must be finite (shape (B, {shape[0]}, {shape[1]})), but {name}{where} is "
+                f"{x[tuple(where)].item()}"
+            )
+        return x.float()
+
+    # ---------------------------------------------------------------- the characters
+    def reset(self, start: Clip | Tensor, n_characters: int = 1, style: Any = None) -> None:
+        """Start from a clip's last P frames (the same for ``n_characters``), or from world frames
+        ``(B, >= P, D)`` (:func:`~minimdm.camdm.data.world_frames`). ``style`` is the start's
+        style (a name, an index, or one per character): a command of another style is then a
+        style change (None: the first command's style is the start's)."""
+        L = self.layout
+        n_characters = check_int("n_characters", n_characters, low=1)
+        if isinstance(start, Clip):
+            check_skeleton("start", start.skeleton, self.skeleton, given_fps=start.fps,
+                           expected_fps=L.fps, model="the CAMDM model")  # fmt: skip
+            if start.n_frames < L.past:
+                raise InputError(
+                    f"start must be a clip of at least P = {L.past} frames, got {start.n_frames}"
+                )
+            frames = world_frames(start)[-L.past :][None].expand(n_characters, -1, -1)
+        elif isinstance(start, Tensor):
+            if start.dim() != 3 or start.shape[1] < L.past or start.shape[2] != L.dim:
+                raise InputError(
+                    f"start must be world frames of shape (B, >= {L.past}, {L.dim}), got "
+                    f"{tuple(start.shape)}"
+                )
+            frames = self._check("start", start[:, -L.past :], (L.past, L.dim), "world frames")
+        else:
+            raise InputTypeError(
+                f"start must be a Clip or a tensor of world frames, got {describe(start)}"
+            )
+        self.history = frames.to(self.device).float().clone()
+        self._plan: Tensor | None = None
+        self._applied = 0
+        self._command: tuple[Tensor, Tensor, Tensor] | None = None
+        self._style: Tensor | None = None
+        if style is not None:
+            s = self.layout.style_index(style, "style")
+            if s.numel() not in (1, frames.shape[0]):
+                raise InputError(
+                    f"style must be one style or {frames.shape[0]} (one per character), got "
+                    f"{s.numel()}"
+                )
+            self._style = s.expand(frames.shape[0]).to(self.device)
+        self._changed_at = torch.full((frames.shape[0],), -(10**9), dtype=torch.long)
+        self._frame = 0
+
+    def _check_commands(self, commands: Commands, n_frames: int) -> Commands:
+        if not isinstance(commands, Commands):
+            raise InputTypeError(f"commands must be a Commands, got {describe(commands)}")
+        B = self.history.shape[0]
+        parts = [("velocity", commands.velocity, (2,)), ("facing", commands.facing, ())]
+        for name, x, tail in [*parts, ("style", commands.style, ())]:
+            want = (B, n_frames, *tail)
+            words = f"({B}, N >= {n_frames}{''.join(f', {t}' for t in tail)})"
+            if not isinstance(x, Tensor) or x.dim() != len(want) or x.shape[0] != B or \
+                    x.shape[1] < n_frames or tuple(x.shape[2:]) != tail:  # fmt: skip
+                got = tuple(x.shape) if isinstance(x, Tensor) else describe(x)
+                raise InputError(f"commands.{name} must have shape {words}, got {got}")
+            if x.is_floating_point() and not torch.isfinite(x).all():
+                raise InputError(
+                    f"commands.{name} must be finite (shape {words}), but it holds NaN/Inf"
+                )
+        bad = (commands.style < 0) | (commands.style >= len(self.layout.styles))
+        if bad.any():
+            raise InputError(
+                f"commands.style must hold style indices in [0, {len(self.layout.styles) - 1}] "
+                f"(styles {list(self.layout.styles)}), got {commands.style[bad][0].item()}"
+            )
+        return commands
+
+    @torch.no_grad()
+    def run(
+        self, commands: Commands, n_frames: int, generator: torch.Generator | None = None
+    ) -> ControlResult:
+        """Animate ``n_frames`` frames under ``commands`` on the one rollout loop."""
+        if self.history is None:
+            raise InputError("call reset(start) before run()")
+        n_frames = check_int("n_frames", n_frames, low=1)
+        commands = self._check_commands(commands, n_frames)
+        check_generator("generator", generator, self.device)
+        result = ControlResult(frames=torch.empty(0), positions=torch.empty(0))
+
+        def step(f: int, x_prev: Tensor) -> Tensor:  # frame f (1-based) of this run
+            i = f - 1
+            cmd = (commands.velocity[:, i].to(self.device), commands.facing[:, i].to(self.device),
+                   commands.style[:, i].to(self.device))  # fmt: skip
+            if self._needs_plan(cmd):
+                self._make_plan(cmd, generator, result, i)
+            frame = self._plan[:, self._applied]  # (B, D)
+            self._applied += 1
+            self._frame += 1
+            self.history = torch.cat([self.history[:, 1:], frame[:, None]], 1)
+            return frame
+
+        B = self.history.shape[0]
+        n = 1 if self.device.type == "cpu" and B < 64 else None
+        with num_threads(n):
+            frames = autoregress(step, self.history[:, -1], n_frames, desc="camdm control",
+                                 who=lambda b: f"character {b}")  # fmt: skip
+        result.frames = frames
+        result.positions = frame_positions(frames.double(), self.skeleton).float()
+        return result
+
+    def _needs_plan(self, cmd: tuple[Tensor, Tensor, Tensor]) -> bool:
+        if self._plan is None or self._applied >= min(self.config.M, self.layout.future):
+            return True
+        v, h, s = self._command
+        return bool(
+            (cmd[2] != s).any()
+            or ((cmd[0] - v).norm(dim=-1) > 1e-4).any()
+            or (wrap_angle(cmd[1] - h).abs() > 1e-4).any()
+        )
+
+    def _make_plan(self, cmd, generator, result: ControlResult, i: int) -> None:
+        L, cfg = self.layout, self.config
+        axis = self.skeleton.lateral_axis
+        past, xy, h = to_canonical(self.history, L.past - 1, axis)  # (B, P, D), (B, 2), (B,)
+        fps = L.fps
+        root = self.history[:, :, :2]
+        hist_h = headings(self.history, axis)  # (B, P)
+        k = min(2, L.past - 1)  # over two frames: less of the bob within a step
+        velocity = (root[:, -1] - root[:, -1 - k]) * fps / k
+        rate = wrap_angle(hist_h[:, -1] - hist_h[:, -1 - k]) * fps / k
+        times = torch.arange(1, L.future + 1, dtype=torch.float32, device=self.device) / fps
+        user_xy = spring_positions(root[:, -1], velocity, cmd[0], cfg.halflife, times)  # (B, F, 2)
+        user_h = spring_headings(hist_h[:, -1], rate, cmd[1], cfg.halflife_facing, times)
+        if self._plan is None:
+            traj_xy, traj_h = user_xy, user_h
+        else:
+            rest = self._plan[:, self._applied :]  # (B, F - m, D) world
+            pred_xy, pred_h = rest[:, :, :2], headings(rest, axis)
+            if cfg.extend:
+                anchor = torch.cat([self.history[:, -1:, :2], pred_xy], 1)
+                anchor_h = torch.cat([hist_h[:, -1:], pred_h], 1)
+                ext_xy, ext_h = extend_trajectory(anchor, anchor_h, L.future + 1, cfg.K)
+                pred_xy, pred_h = ext_xy[:, 1:], ext_h[:, 1:]
+            else:  # w/o HFTE: the missing points are the user's
+                k = pred_xy.shape[1]
+                pred_xy = torch.cat([pred_xy, user_xy[:, k:]], 1)
+                pred_h = torch.cat([pred_h, user_h[:, k:]], 1)
+            pred_h = hist_h[:, -1:] + torch.cumsum(
+                wrap_angle(torch.diff(torch.cat([hist_h[:, -1:], pred_h], 1), dim=1)), 1
+            )  # unwrapped, so that blending never turns the long way
+            traj_xy, traj_h = blend_trajectories(pred_xy, pred_h, user_xy, user_h, cfg.blend_bias)
+        # the controlling trajectory in the current frame
+        c, s = torch.cos(-h)[:, None], torch.sin(-h)[:, None]
+        d = traj_xy - xy[:, None]
+        local = torch.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], -1)
+        rel = traj_h - h[:, None]
+        traj = torch.cat([local, torch.cos(rel)[..., None], torch.sin(rel)[..., None]], -1)
+        # CFG-PM at a style change
+        if self._style is not None:
+            changed = (cmd[2] != self._style).cpu()
+            self._changed_at[changed] = self._frame
+        since = self._frame - self._changed_at
+        gamma = torch.where(since < cfg.switch_frames, cfg.gamma_switch, cfg.gamma).float()
+        future = self.plan(past, cmd[2], traj, generator, gamma.to(self.device), cfg.guide)
+        self._plan = to_world(future, xy, h)  # (B, F, D)
+        self._applied = 0
+        self._command = cmd
+        self._style = cmd[2]
+        result.replans.append(i)
+        result.gammas.append(gamma)
+        result.trajectories.append(torch.cat([traj_xy, traj_h[..., None]], -1).cpu())

@@ -1,0 +1,124 @@
+"""The run-time trajectories of CAMDM (Chen et al. 2024, §3.2 and Figure 3).
+
+* :func:`spring_positions` and :func:`spring_headings`: the user's synthetic future trajectory,
+  a critically damped spring from the character's current velocity (and turning rate) towards
+  the joystick's (Büttner and Clavet 2015; Holden's "spring-roll-call" closed forms);
+* :func:`blend_trajectories`: the model's predicted trajectory blended with the user's, more of
+  the user's the further ahead (Holden et al. 2017);
+* :func:`extend_trajectory`: heuristic future trajectory extension (HFTE): when M frames of a
+  plan have been applied, its predicted trajectory is M points short; the last K points are
+  recycled, mirrored about the last point, until the length matches.
+
+All are batched over characters: positions ``(B, n, 2)`` on the ground, headings ``(B, n)`` in
+radians, times in seconds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from minimdm.motion.skeleton import wrap_angle
+
+__all__ = [
+    "halflife_to_damping",
+    "spring_positions",
+    "spring_headings",
+    "blend_trajectories",
+    "extend_trajectory",
+]
+
+
+def halflife_to_damping(halflife: float) -> float:
+    """The damping of a critically damped spring that halves its error in ``halflife`` s."""
+    return 4.0 * math.log(2.0) / (halflife + 1e-5)
+
+
+def spring_positions(
+    xy: Tensor, velocity: Tensor, goal_velocity: Tensor, halflife: float, times: Tensor
+) -> Tensor:
+    """Future ground positions ``(B, n, 2)`` of a point at ``xy (B, 2)`` moving at ``velocity
+    (B, 2)`` whose velocity a critically damped spring pulls to ``goal_velocity (B, 2)``, at
+    ``times (n,)`` seconds ahead (zero initial acceleration)."""
+    y = halflife_to_damping(halflife) / 2
+    t = times.to(xy)[None, :, None]  # (1, n, 1)
+    j0 = (velocity - goal_velocity)[:, None]  # (B, 1, 2)
+    j1 = j0 * y
+    e = torch.exp(-y * t)
+    return (
+        e * (-j1 / y**2 + (-j0 - j1 * t) / y) + j1 / y**2 + j0 / y
+        + goal_velocity[:, None] * t + xy[:, None]
+    )  # fmt: skip
+
+
+def spring_headings(
+    heading: Tensor, rate: Tensor, goal: Tensor, halflife: float, times: Tensor
+) -> Tensor:
+    """Future headings ``(B, n)`` of a critically damped spring from ``heading (B,)`` turning at
+    ``rate (B,)`` rad/s towards ``goal (B,)``, the short way round, at ``times (n,)``."""
+    y = halflife_to_damping(halflife) / 2
+    t = times.to(heading)[None]  # (1, n)
+    target = heading + wrap_angle(goal - heading)  # the goal nearest to the heading
+    j0 = (heading - target)[:, None]
+    j1 = rate[:, None] + j0 * y
+    return torch.exp(-y * t) * (j0 + j1 * t) + target[:, None]
+
+
+def blend_trajectories(
+    predicted_xy: Tensor,
+    predicted_heading: Tensor,
+    user_xy: Tensor,
+    user_heading: Tensor,
+    bias: float = 1.0,
+) -> tuple[Tensor, Tensor]:
+    """The controlling trajectory: point k of n is :math:`(1 - w_k)` predicted + :math:`w_k`
+    user with :math:`w_k = (k / n)^{bias}` (headings blended by their wrapped difference)."""
+    n = predicted_xy.shape[1]
+    w = (torch.arange(1, n + 1, dtype=predicted_xy.dtype, device=predicted_xy.device) / n) ** bias
+    xy = predicted_xy + w[None, :, None] * (user_xy - predicted_xy)
+    heading = predicted_heading + w[None] * wrap_angle(user_heading - predicted_heading)
+    return xy, heading
+
+
+def _travel_direction(xy: Tensor, heading: Tensor) -> Tensor:
+    """The direction of travel at the last point, (B,), from a second-order backward difference
+    (exact on lines, near-exact on circles); the heading where the path stands still."""
+    if xy.shape[1] >= 3:
+        d = 1.5 * xy[:, -1] - 2.0 * xy[:, -2] + 0.5 * xy[:, -3]
+    else:
+        d = xy[:, -1] - xy[:, -2]
+    still = d.norm(dim=-1) < 1e-6
+    return torch.where(still, heading[:, -1], torch.atan2(d[:, 1], d[:, 0]))
+
+
+def extend_trajectory(
+    xy: Tensor, heading: Tensor, length: int, K: int = 15
+) -> tuple[Tensor, Tensor]:
+    """HFTE (Figure 3): extend a trajectory ``(B, n, 2)``, ``(B, n)`` to ``length`` points.
+
+    Each recycle takes the last ``K`` points before the last one and mirrors them about the
+    line through the last point across the direction of travel: the point j steps before the
+    end becomes the point j steps after it, and its heading is mirrored likewise (:math:`2
+    \\theta_n - \\theta_{n-j}`). A straight line continues straight, a circle as a circle of the
+    same radius, a sideways walk sideways. Recycles repeat until the length is reached.
+    """
+    if xy.shape[1] < 2:
+        raise ValueError(f"a trajectory needs at least 2 points to extend, got {xy.shape[1]}")
+    if K < 1:
+        raise ValueError(f"K must be >= 1, got {K}")
+    while xy.shape[1] < length:
+        m = min(K, xy.shape[1] - 1, length - xy.shape[1])
+        last, h_last = xy[:, -1:], heading[:, -1:]  # (B, 1, 2), (B, 1)
+        d = _travel_direction(xy, heading)  # (B,)
+        c, s = torch.cos(d)[:, None], torch.sin(d)[:, None]
+        prev = xy[:, -1 - m : -1].flip(1) - last  # (B, m, 2): the points 1..m steps back
+        along = prev[..., 0] * c + prev[..., 1] * s  # their coordinates in the travel frame
+        across = -prev[..., 0] * s + prev[..., 1] * c
+        along = -along  # the mirror: behind becomes ahead
+        new_xy = last + torch.stack([along * c - across * s, along * s + across * c], -1)
+        back = heading[:, -1 - m : -1].flip(1)  # (B, m)
+        new_h = h_last + wrap_angle(h_last - back)  # 2 theta_n - theta_{n-j}
+        xy, heading = torch.cat([xy, new_xy], 1), torch.cat([heading, new_h], 1)
+    return xy[:, :length], heading[:, :length]

@@ -1,0 +1,365 @@
+"""One frame as one ONNX graph: export with metadata, and :class:`FastFrame`, the fast path.
+
+:func:`export_onnx` traces a :class:`~minimdm.fast.graphs.FrameGraph` (the model's own eager
+frame step, noise as an input) with PyTorch's TorchScript-based ONNX exporter: the Python loop
+over denoising levels unrolls into one graph, the level-dependent schedule values and time
+embeddings become constants, and the batch stays a free dimension. The file carries the weights
+and, under the metadata key ``minimdm``, one JSON object (:func:`read_metadata`) with what a
+game engine needs: the inputs and their meaning, the noise layout, the sampler and its
+schedule, the normalizer, the feature layout, the skeleton and the frame rate.
+
+:class:`FastFrame` runs that graph in an ONNX Runtime inference session. It is a drop-in for the
+eager per-frame step, ``frame = fast(state, generator)``: it draws the frame's noise from the
+generator exactly as the eager chain would (:meth:`~minimdm.diffusion.NoiseTape.draw`), so the
+same seed gives the same frames within float rounding (tests: 1e-4). Pass it as ``sampler=`` to
+:func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`, or use
+:meth:`FastFrame.step` with :func:`~minimdm.amdm.sampling.autoregress`.
+
+Why ONNX Runtime: measured in one run of ``benchmarks/realtime.py`` on the 2-core build machine
+(one thread, batch 1, the book A-MDM), one frame took 13.4 ms eager, 7.2 ms as a frozen
+TorchScript trace, 19.4 ms under ``torch.compile`` (the chain's data-dependent input checks break
+its graph; 19.5 s to compile) and 3.5 ms in ONNX Runtime, whose file is also what a game engine
+loads. ``benchmarks/results/realtime.jsonl`` keeps the numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from minimdm._version import __version__
+from minimdm.validate import InputError, InputTypeError
+
+from .graphs import FrameGraph
+
+__all__ = [
+    "FORMAT",
+    "METADATA_KEY",
+    "WEIGHTS",
+    "metadata",
+    "export_onnx",
+    "read_metadata",
+    "FastFrame",
+    "fast_frame",
+]
+
+FORMAT = "minimdm-frame-onnx/1"
+"""The ``format`` field of the metadata; bumped when its meaning changes."""
+METADATA_KEY = "minimdm"
+"""The ONNX ``metadata_props`` key that holds the JSON metadata."""
+OPSET = 17
+"""ONNX opset of the exported graphs (LayerNormalization is native from 17 on)."""
+
+
+def _require_onnxruntime():
+    try:
+        import onnxruntime
+    except ImportError:  # pragma: no cover - a dependency of minimdm
+        raise ImportError(
+            "the fast path needs onnxruntime: pip install onnxruntime (a minimdm dependency)"
+        ) from None
+    return onnxruntime
+
+
+def metadata(graph: FrameGraph, weights: str = "fp32", batch: int | None = None) -> dict[str, Any]:
+    """The JSON metadata of ``graph``'s ONNX file (module docstring)."""
+    b = "batch" if batch is None else int(batch)
+    inputs = [{"name": "state", "shape": [b, graph.state_dim]}]
+    inputs += [{"name": n, "shape": [b, w], "what": what} for n, w, what in graph.extra_inputs]
+    inputs.append({
+        "name": "noise",
+        "shape": [b, graph.noise_dim],
+        "what": "standard normal noise: one block of columns per draw of the chain, in order",
+        "widths": list(graph.noise_widths),
+    })  # fmt: skip
+    return {
+        "format": FORMAT,
+        "kind": graph.kind,
+        "minimdm_version": __version__,
+        "inputs": inputs,
+        "outputs": [{"name": "next_state", "shape": [b, graph.state_dim]}],
+        "weights": weights,
+        **graph.describe(),
+        **graph.settings,
+    }
+
+
+WEIGHTS = ("fp32", "int8")
+"""The weight formats :func:`export_onnx` writes."""
+
+
+def export_onnx(
+    graph: FrameGraph,
+    path: str | os.PathLike | None = None,
+    weights: str = "fp32",
+    batch: int | None = None,
+) -> bytes:
+    """Trace ``graph`` into one ONNX graph with its metadata; write it to ``path`` if given.
+
+    ``weights="int8"`` stores every linear layer's weights as 8-bit integers with one fp32 scale
+    per block of 32 inputs (ONNX Runtime's ``MatMulNBits``, computed with int8 dot products):
+    a quarter of the bytes, so that a large denoiser stays in the CPU's cache. It is an
+    approximation: on the same noise a frame differs from the fp32 graph's by 1 to 9 % of its
+    RMS, more with DDIM's few steps (``benchmarks/realtime.py`` measures it); ``"fp32"`` matches
+    the eager chain within 1e-4.
+    ``batch`` None leaves the batch free; a number fixes it, which lets the exporter fold
+    everything that depends only on the level (time embeddings and their MLP, schedule values)
+    into constants: fewer operations per frame, e.g. for one character in a browser.
+    The write is atomic (a temporary file, then a rename). Returns the model's bytes.
+    """
+    if weights not in WEIGHTS:
+        raise InputError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
+    graph = graph.eval()
+    args = graph.example_inputs(batch=1 if batch is None else int(batch))
+    names = ["state", *(n for n, _, _ in graph.extra_inputs), "noise"]
+    axes = {n: {0: "batch"} for n in [*names, "next_state"]} if batch is None else None
+    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+        # The chain's input checks run once at trace time on the example inputs; the graph keeps
+        # none of them (FastFrame checks its inputs before every call).
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", message=".*legacy TorchScript-based ONNX export.*")
+        warnings.filterwarnings("ignore", category=DeprecationWarning)
+        # index_add (the residual hook) always warns; its indices are distinct features
+        warnings.filterwarnings("ignore", message=".*duplicated values in 'index' field.*")
+        f = Path(tmp) / "frame.onnx"
+        torch.onnx.export(
+            graph, args, str(f), dynamo=False, input_names=names, output_names=["next_state"],
+            dynamic_axes=axes, opset_version=OPSET, do_constant_folding=True,
+        )  # fmt: skip
+        import onnx
+
+        model = onnx.load(str(f))
+    if weights == "int8":
+        model = _int8_weights(model)
+    meta = model.metadata_props.add()
+    meta.key, meta.value = METADATA_KEY, json.dumps(metadata(graph, weights, batch))
+    model.producer_name, model.producer_version = "minimdm", __version__
+    data = model.SerializeToString()
+    if path is not None:
+        _atomic_write(Path(path), data)
+    return data
+
+
+def _int8_weights(model):
+    """The graph with every linear layer's weights in blocks of 8-bit integers (MatMulNBits).
+
+    The tracer writes a linear layer as ``Gemm(x, W, b, transB=1)``; ONNX Runtime's weight
+    quantizer takes ``MatMul`` nodes, so each becomes ``MatMul(x, W^T) + b`` first.
+    """
+    import logging
+
+    from onnx import helper, numpy_helper
+    from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
+
+    g = model.graph
+    tensors = {i.name: numpy_helper.to_array(i) for i in g.initializer}
+    tensors.update({
+        n.output[0]: numpy_helper.to_array(n.attribute[0].t)
+        for n in g.node if n.op_type == "Constant" and n.attribute[0].name == "value"
+    })  # fmt: skip
+    nodes, made = [], set()
+    for n in g.node:
+        attrs = {a.name: helper.get_attribute_value(a) for a in n.attribute}
+        plain = attrs.get("alpha", 1.0) == 1.0 and attrs.get("beta", 1.0) == 1.0
+        if n.op_type != "Gemm" or n.input[1] not in tensors or attrs.get("transA") or not plain:
+            nodes.append(n)
+            continue
+        name = f"{n.input[1]}.t" if attrs.get("transB") else n.input[1]
+        if name not in made and name not in tensors:  # once per weight, not once per step
+            w = tensors[n.input[1]].T
+            g.initializer.append(numpy_helper.from_array(np.ascontiguousarray(w), name))
+            made.add(name)
+        product = f"{n.output[0]}.matmul" if len(n.input) > 2 else n.output[0]
+        nodes.append(helper.make_node("MatMul", [n.input[0], name], [product]))
+        if len(n.input) > 2:
+            nodes.append(helper.make_node("Add", [product, n.input[2]], [n.output[0]]))
+    _keep_used(g, nodes)
+    log = logging.getLogger("onnxruntime.quantization.matmul_nbits_quantizer")
+    level = log.level
+    log.setLevel(logging.WARNING)
+    try:
+        q = MatMulNBitsQuantizer(model, bits=8, block_size=32, is_symmetric=True, accuracy_level=4)
+        q.process()
+    finally:
+        log.setLevel(level)
+    model = q.model.model
+    _keep_used(model.graph, list(model.graph.node))
+    return model
+
+
+def _keep_used(g, nodes: list) -> None:
+    """Set the graph's nodes to ``nodes`` less the constants and initializers nothing reads."""
+    used = {i for n in nodes for i in n.input} | {o.name for o in g.output}
+    nodes = [n for n in nodes if n.op_type != "Constant" or n.output[0] in used]
+    del g.node[:]
+    g.node.extend(nodes)
+    keep = [i for i in g.initializer if i.name in used]
+    del g.initializer[:]
+    g.initializer.extend(keep)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        os.chmod(tmp, 0o666 & ~umask)  # an ordinary file's mode, not mkstemp's 0600
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_metadata(model: str | os.PathLike | bytes) -> dict[str, Any]:
+    """The JSON metadata of an exported frame graph (a path or the model's bytes).
+
+    Raises:
+        InputError: the file is not an exported minimdm frame graph.
+    """
+    ort = _require_onnxruntime()
+    where = "the model bytes" if isinstance(model, bytes) else str(model)
+    try:
+        sess = ort.InferenceSession(
+            model if isinstance(model, bytes) else str(model), providers=["CPUExecutionProvider"]
+        )
+    except Exception as e:  # onnxruntime raises its own exception types
+        raise InputError(f"{where} is not a readable ONNX model: {e}") from None
+    return _metadata_of(sess, where)
+
+
+def _metadata_of(sess, where: str) -> dict[str, Any]:
+    props = sess.get_modelmeta().custom_metadata_map
+    if METADATA_KEY not in props:
+        raise InputError(
+            f"{where} has no {METADATA_KEY!r} metadata: it was not written by minimdm export"
+        )
+    meta = json.loads(props[METADATA_KEY])
+    if meta.get("format") != FORMAT:
+        raise InputError(f"{where} has metadata format {meta.get('format')!r}, expected {FORMAT!r}")
+    return meta
+
+
+class FastFrame:
+    """A frame graph in an ONNX Runtime session: ``next_state = fast(state, generator)``.
+
+    Args:
+        model: an exported graph (its bytes or a path), or a :class:`FrameGraph` to export.
+        threads: ONNX Runtime intra-op threads (1: the fastest for one character; None: all
+            cores).
+
+    The call takes ``state`` (B, S) and the ``extra`` inputs by name (a policy's ``task``), and
+    either a ``generator`` (the noise is drawn from it as the eager chain draws it) or the
+    ``noise`` (B, N) itself. It returns a float32 tensor on the CPU.
+    """
+
+    def __init__(self, model: FrameGraph | bytes | str | os.PathLike, threads: int | None = 1):
+        ort = _require_onnxruntime()
+        if isinstance(model, FrameGraph):
+            model = export_onnx(model)
+        where = "the model bytes" if isinstance(model, bytes) else str(model)
+        opts = ort.SessionOptions()
+        if threads is not None:
+            opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.log_severity_level = 3  # no warnings on stderr
+        src = model if isinstance(model, bytes) else str(model)
+        self.session = ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
+        self.metadata = _metadata_of(self.session, where)
+        self.inputs = [i["name"] for i in self.metadata["inputs"]]
+        self.widths: dict[str, int] = {i["name"]: i["shape"][1] for i in self.metadata["inputs"]}
+        self.noise_widths = tuple(self.metadata["inputs"][-1]["widths"])
+        self.kind = self.metadata["kind"]
+
+    @property
+    def state_dim(self) -> int:
+        return self.widths["state"]
+
+    def noise(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
+        """(batch, N) one frame's noise, drawn as the eager chain draws it."""
+        from minimdm.diffusion import NoiseTape
+
+        return NoiseTape.draw(self.noise_widths, batch, generator)
+
+    def _array(self, name: str, x: Any, batch: int | None) -> np.ndarray:
+        if not isinstance(x, (Tensor, np.ndarray)):
+            raise InputTypeError(f"{name} must be a tensor, got {type(x).__name__}")
+        a = (x.detach().cpu().numpy() if isinstance(x, Tensor) else x).astype(
+            np.float32, copy=False
+        )
+        w = self.widths[name]
+        if a.ndim != 2 or a.shape[1] != w or (batch is not None and a.shape[0] != batch):
+            want = f"({batch if batch is not None else 'B'}, {w})"
+            raise InputError(f"{name} must have shape {want}, got {tuple(a.shape)}")
+        if not np.isfinite(a).all():
+            raise InputError(f"{name} must be finite, but it holds NaN/Inf")
+        return np.ascontiguousarray(a)
+
+    def __call__(
+        self,
+        state: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        noise: Tensor | None = None,
+        **extra: Tensor,
+    ) -> Tensor:
+        """The next state (B, S) from ``state`` (B, S); see the class docstring."""
+        feed = {"state": self._array("state", state, None)}
+        B = feed["state"].shape[0]
+        missing = [n for n in self.inputs[1:-1] if n not in extra]
+        unknown = sorted(set(extra) - set(self.inputs[1:-1]))
+        if missing or unknown:
+            raise InputError(
+                f"a {self.kind} frame takes the inputs {self.inputs[1:-1]} besides state and "
+                f"noise; missing {missing}, unknown {unknown}"
+            )
+        for n in self.inputs[1:-1]:
+            feed[n] = self._array(n, extra[n], B)
+        if noise is None:
+            noise = self.noise(B, generator)
+        feed["noise"] = self._array("noise", noise, B)
+        (out,) = self.session.run(None, feed)
+        return torch.from_numpy(out)
+
+    def step(self, generator: torch.Generator | None = None, **extra: Any) -> Callable:
+        """``step(f, x_prev) -> x_f`` for :func:`~minimdm.amdm.sampling.autoregress`.
+
+        An extra input may be a tensor or a function ``(f, x_prev) -> tensor`` of the frame.
+        """
+
+        def step(f: int, x_prev: Tensor) -> Tensor:
+            args = {k: (v(f, x_prev) if callable(v) else v) for k, v in extra.items()}
+            return self(x_prev, generator, **args)
+
+        return step
+
+
+def fast_frame(
+    checkpoint: Any,
+    steps: int | None = None,
+    eta: float = 1.0,
+    threads: int | None = 1,
+    weights: str = "fp32",
+) -> FastFrame:
+    """The :class:`FastFrame` of a checkpoint (a loaded one, a path or a shipped name).
+
+    ``steps`` and ``eta`` pick DDIM for A-MDM, as in :func:`minimdm.amdm.sampling.rollout`;
+    ``weights`` as in :func:`export_onnx`.
+    """
+    from .graphs import frame_graph
+
+    return FastFrame(export_onnx(frame_graph(checkpoint, steps, eta), weights=weights), threads)

@@ -1,0 +1,444 @@
+"""CAMDM (chapter 9): the token layout, CFG on past motion (eq. 5) on the one reverse chain, the
+run-time trajectories (spring, HFTE), training, the controller on the one rollout loop, the style
+classifier's Fréchet distance, bad input and the shipped checkpoints.
+
+Everything but the shipped checkpoints runs on tiny networks and a synthetic 4-joint walker.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import minimdm
+from minimdm.camdm.classifier import frechet_distance, load_classifier
+from minimdm.camdm.controller import CAMDMController, Commands, ControlConfig
+from minimdm.camdm.data import CAMDMLayout, to_canonical, to_world, trajectory_of, world_frames
+from minimdm.camdm.model import CAMDM, CAMDMConfig, Conditions
+from minimdm.camdm.sampling import GuidedStep, guided_x0, sample_future
+from minimdm.camdm.train import CAMDMTrainConfig, data_from_clips, load_camdm, train_camdm
+from minimdm.camdm.trajectory import extend_trajectory, spring_headings, spring_positions
+from minimdm.checkpoint import CheckpointMismatchError
+from minimdm.cli import main
+from minimdm.diffusion import DDPMStep, NoiseSchedule, reverse_chain
+from minimdm.motion.data import Clip
+from minimdm.motion.skeleton import Skeleton, axis_angle_to_quat
+from minimdm.validate import InputError, MismatchError
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
+P, F, J = 4, 6, 4
+D = 3 + 6 * J
+
+
+def walker(style: str, n: int = 40, names=("Hips", "Spine", "LegL", "LegR"), speed=0.04) -> Clip:
+    """A 4-joint body walking along +x, legs swinging; 'big' swings wider than 'small'."""
+    offsets = np.array([[0, 0, 0.9], [0, 0, 0.3], [0, 0.1, -0.85], [0, -0.1, -0.85]], float)
+    sk = Skeleton(list(names), [-1, 0, 0, 0], offsets, foot_joints=[names[2], names[3]])
+    amp = 0.5 if style == "big" else 0.2
+    ph = np.arange(n) * 0.3
+    aa = np.zeros((n, J, 3))
+    aa[:, 2, 1], aa[:, 3, 1] = amp * np.sin(ph), -amp * np.sin(ph)
+    root = np.stack([np.arange(n) * speed, np.zeros(n), np.full(n, 0.9)], -1)
+    clip = Clip(f"walk_{style}", 30.0, sk, root, axis_angle_to_quat(torch.tensor(aa)).numpy())
+    clip.labels = {"content": "walk", "style": style}
+    return clip
+
+
+def tiny_config(**kw) -> CAMDMTrainConfig:
+    base = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0, past=P, future=F, T=4,
+                batch_size=16, total_steps=60, warmup_steps=5, lr=3e-3, log_interval=10,
+                eval_interval=0, ckpt_interval=0, ema_decay=0.0, p_drop_style=0.1)  # fmt: skip
+    return CAMDMTrainConfig(**{**base, **kw})
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A tiny CAMDM trained for 60 steps on two synthetic styles, and its data."""
+    config = tiny_config()
+    data = data_from_clips([walker("big"), walker("small", speed=0.02)], config, [walker("big")])
+    out = tmp_path_factory.mktemp("camdm")
+    with torch.random.fork_rng():
+        ckpt = train_camdm(config, out, data=data, progress=False)
+    return ckpt, data
+
+
+def conditions(B: int = 3, seed: int = 0, n_styles: int = 2) -> Conditions:
+    g = torch.Generator().manual_seed(seed)
+    return Conditions(
+        torch.randn(B, P, D, generator=g),
+        torch.randint(n_styles, (B,), generator=g),
+        torch.randn(B, F, 4, generator=g),
+    )
+
+
+def net(tokens: str = "separate", backbone: str = "transformer") -> CAMDM:
+    torch.manual_seed(0)
+    return CAMDM(CAMDMConfig(D, 2, P, F, latent=16, layers=1, heads=2, ff=32, dropout=0.0,
+                             tokens=tokens, backbone=backbone)).eval()  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ token layout
+
+
+@settings(max_examples=20, deadline=None)
+@given(which=st.sampled_from(["t", "style", "past", "traj", "frame"]), seed=st.integers(0, 99))
+def test_each_condition_reaches_its_own_token(which, seed):
+    """Separate condition tokenization (§3.2): changing one condition changes its token alone,
+    before attention mixes them."""
+    model, cond = net(), conditions(seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    x, t = torch.randn(3, F, D, generator=g), torch.tensor([0, 1, 2])
+    base = model.tokens(x, t, cond)  # (B, 4 + F, L)
+    frame = seed % F
+    if which == "t":
+        t, expected = t + 1, {0}
+    elif which == "style":
+        cond.style, expected = 1 - cond.style, {1}
+    elif which == "past":
+        cond.past, expected = cond.past + torch.randn(cond.past.shape, generator=g), {2}
+    elif which == "traj":
+        cond.traj, expected = cond.traj + torch.randn(cond.traj.shape, generator=g), {3}
+    else:
+        x = x.clone()
+        x[:, frame] += 1.0
+        expected = {4 + frame}
+    changed = (model.tokens(x, t, cond) - base).abs().amax(dim=(0, 2)) > 0
+    assert set(changed.nonzero()[:, 0].tolist()) == expected
+
+
+def test_past_frames_tokens_give_each_past_frame_its_own_token():
+    model, cond = net("past_frames"), conditions()
+    x, t = torch.randn(3, F, D), torch.zeros(3, dtype=torch.long)
+    base = model.tokens(x, t, cond)
+    assert base.shape[1] == 2 + P + 1 + F
+    for what, want in (("past", {2 + P - 1}), ("traj", {2 + P})):
+        c = conditions()
+        if what == "past":
+            c.past = c.past.clone()
+            c.past[:, -1] += 1.0  # the last past frame only
+        else:
+            c.traj = c.traj + 1.0
+        changed = (model.tokens(x, t, c) - base).abs().amax(dim=(0, 2)) > 0
+        assert set(changed.nonzero()[:, 0].tolist()) == want
+
+
+def test_a_single_token_fuses_every_condition_and_the_mlp_has_none():
+    model, cond = net("single"), conditions()
+    x, t = torch.randn(3, F, D), torch.zeros(3, dtype=torch.long)
+    base = model.tokens(x, t, cond)
+    assert base.shape[1] == 1 + F
+    cond.past = cond.past + 1
+    changed = (model.tokens(x, t, cond) - base).abs().amax(dim=(0, 2)) > 0
+    assert changed.nonzero()[:, 0].tolist() == [0]
+    mlp = net(backbone="mlp")
+    assert mlp(x, t, conditions()).shape == (3, F, D)
+    with pytest.raises(ValueError, match="no tokens"):
+        mlp.tokens(x, t, cond)
+
+
+def test_a_dropped_past_is_the_learned_null():
+    model, cond = net(), conditions()
+    x, t = torch.randn(3, F, D), torch.zeros(3, dtype=torch.long)
+    dropped = cond.without("past")
+    other = Conditions(torch.randn(3, P, D), cond.style, cond.traj, dropped.keep_past)
+    assert torch.equal(model(x, t, dropped), model(x, t, other))  # the past is not seen
+    assert not torch.equal(model(x, t, dropped), model(x, t, cond))
+
+
+# ------------------------------------------------------------------------------ CFG (eq. 5)
+
+
+@pytest.mark.parametrize("guide", ["past", "style"])
+def test_cfg_at_gamma_one_is_the_conditional_model_exactly(guide):
+    model, cond = net(), conditions()
+    schedule = NoiseSchedule("cosine", 8)
+    guided = sample_future(model, schedule, cond, torch.Generator().manual_seed(3), guide=guide)
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn((3, F, D), generator=g)
+    plain = reverse_chain(DDPMStep(model, schedule, "x0"), x, range(7, -1, -1), cond, g)
+    assert torch.equal(guided, plain)
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    gamma=st.floats(0.0, 2.0).filter(lambda g: g != 1.0), guide=st.sampled_from(["past", "style"])
+)
+def test_cfg_combines_both_halves_of_one_forward_pass(gamma, guide):
+    """Eq. 5: G(∅) + γ (G(p) - G(∅)), both from one call on the doubled batch."""
+    model, cond = net(), conditions()
+    x, t = torch.randn(3, F, D), torch.tensor([1, 2, 3])
+    calls = []
+    model.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    out = guided_x0(model, x, t, cond, gamma, guide)
+    assert calls == [6]  # one forward pass on 2 B rows
+    with torch.no_grad():
+        full, dropped = model(x, t, cond), model(x, t, cond.without(guide))
+    torch.testing.assert_close(out, dropped + gamma * (full - dropped), atol=1e-5, rtol=1e-5)
+
+
+def test_cfg_scales_per_sample_leave_gamma_one_rows_conditional():
+    model, cond = net(), conditions()
+    x, t = torch.randn(3, F, D), torch.tensor([1, 1, 1])
+    out = guided_x0(model, x, t, cond, torch.tensor([1.0, 0.7, 1.0]), "past")
+    full = model(x, t, cond)
+    torch.testing.assert_close(out[[0, 2]], full[[0, 2]], atol=1e-5, rtol=1e-5)
+    assert (out[1] - full[1]).abs().max() > 1e-3
+    assert GuidedStep(model, NoiseSchedule("cosine", 8)).name == "cfg"
+
+
+# ------------------------------------------------------------------------------ trajectories
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    heading=st.floats(-math.pi, math.pi),
+    step=st.floats(0.005, 0.1),
+    side=st.floats(-math.pi / 2, math.pi / 2),
+    n=st.integers(3, 30),
+    length=st.integers(31, 70),
+)
+def test_hfte_extends_a_straight_line_straight(heading, step, side, n, length):
+    """A path along ``heading``, facing ``heading + side`` (a sideways walk), stays on its line
+    with the same spacing and facing."""
+    d = torch.tensor([math.cos(heading), math.sin(heading)], dtype=torch.float64)
+    xy = (torch.arange(n, dtype=torch.float64)[:, None] * step * d)[None]
+    h = torch.full((1, n), heading + side, dtype=torch.float64)
+    ext_xy, ext_h = extend_trajectory(xy, h, length, K=15)
+    want = (torch.arange(length, dtype=torch.float64)[:, None] * step * d)[None]
+    torch.testing.assert_close(ext_xy, want, atol=1e-9, rtol=0)
+    torch.testing.assert_close(ext_h, torch.full((1, length), heading + side, dtype=torch.float64))
+
+
+@settings(max_examples=30, deadline=None)
+@given(radius=st.floats(0.5, 5.0), dtheta=st.floats(-0.05, 0.05).filter(lambda a: abs(a) > 1e-3),
+       n=st.integers(16, 45))  # fmt: skip
+def test_hfte_keeps_the_curvature_of_a_circle(radius, dtheta, n):
+    a = torch.arange(n, dtype=torch.float64) * dtheta
+    xy = torch.stack([radius * torch.sin(a), radius * (1 - torch.cos(a))], -1)[None]
+    h = a[None].clone()  # facing along the circle
+    if dtheta < 0:  # clockwise: the centre lies to the right
+        xy = torch.stack([radius * torch.sin(-a), -radius * (1 - torch.cos(a))], -1)[None]
+    centre = torch.tensor([0.0, radius if dtheta > 0 else -radius], dtype=torch.float64)
+    ext_xy, ext_h = extend_trajectory(xy, h, n + 30, K=15)
+    r = (ext_xy[0] - centre).norm(dim=-1)
+    torch.testing.assert_close(r, torch.full_like(r, radius), atol=1e-3 * radius, rtol=0)
+    turn = torch.diff(ext_h[0])  # the heading keeps turning at the same rate
+    torch.testing.assert_close(turn, torch.full_like(turn, dtheta), atol=1e-9, rtol=0)
+    step = torch.diff(ext_xy[0], dim=0).norm(dim=-1)  # and the spacing stays
+    torch.testing.assert_close(step, torch.full_like(step, step[0].item()), atol=1e-3, rtol=1e-3)
+
+
+def test_springs_reach_the_joystick():
+    t = torch.arange(1, 91, dtype=torch.float64) / 30
+    xy = spring_positions(torch.zeros(1, 2), torch.zeros(1, 2), torch.tensor([[1.0, 0.0]]), 0.3, t)
+    v = torch.diff(xy[0], dim=0)[-1] * 30
+    torch.testing.assert_close(v, torch.tensor([1.0, 0.0]), atol=1e-3, rtol=0)
+    assert torch.equal(xy[0, :, 1], torch.zeros(90))
+    # a turn from 170 to -170 degrees goes the short way, through 180
+    h = spring_headings(torch.tensor([math.radians(170)]), torch.zeros(1),
+                        torch.tensor([math.radians(-170)]), 0.3, t)  # fmt: skip
+    assert h[0].diff().min() >= 0 and abs(h[0, -1].item() - math.radians(190)) < 1e-3
+
+
+# ------------------------------------------------------------------------------ representation
+
+
+def test_canonical_frames_round_trip_and_face_x():
+    clip = walker("big")
+    clip.root_pos[:, :2] += [3.0, -2.0]
+    world = world_frames(clip)[None, :12]
+    canon, xy, h = to_canonical(world, 5, clip.skeleton.lateral_axis)
+    torch.testing.assert_close(to_world(canon, xy, h), world, atol=1e-5, rtol=0)
+    traj = trajectory_of(canon[:, 5:6], clip.skeleton.lateral_axis)
+    torch.testing.assert_close(traj[0, 0], torch.tensor([0.0, 0.0, 1.0, 0.0]), atol=1e-5, rtol=0)
+
+
+# ------------------------------------------------------------------------------ training
+
+
+def test_a_tiny_model_learns(tiny):
+    import json
+
+    ckpt, _ = tiny
+    log = [
+        json.loads(ln) for ln in (ckpt.paths.weights.parent / "log.jsonl").read_text().splitlines()
+    ]
+    losses = [r["loss"] for r in log if "loss" in r]
+    assert losses[-1] < 0.7 * losses[0]
+    assert {"samp", "pos", "foot", "vel"} <= set(log[0])
+    assert any("heldout_loss" in r for r in log)
+
+
+def test_training_is_deterministic(tiny, tmp_path):
+    ckpt, data = tiny
+    again = train_camdm(tiny_config(total_steps=20), tmp_path, data=data, progress=False)
+    twice = train_camdm(tiny_config(total_steps=20), tmp_path / "b", data=data, progress=False)
+    for k, v in again.model.state_dict().items():
+        assert torch.equal(v, twice.model.state_dict()[k])
+
+
+def test_training_resumes_from_its_last_checkpoint(tiny, tmp_path):
+    import json
+
+    _, data = tiny
+    train_camdm(tiny_config(total_steps=20), tmp_path, data=data, progress=False)
+    ckpt = train_camdm(tiny_config(total_steps=30), tmp_path, data=data, progress=False)
+    assert ckpt.step == 30
+    steps = [json.loads(ln)["step"] for ln in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert steps == [10, 20, 20, 30, 30]  # losses every 10 steps, evaluations at the ends
+    with pytest.raises(ValueError, match="cannot resume"):
+        train_camdm(tiny_config(total_steps=40, latent=8), tmp_path, data=data, progress=False)
+
+
+# ------------------------------------------------------------------------------ the controller
+
+
+def test_the_controller_replans_every_m_frames_and_at_a_style_change(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt, ControlConfig(M=3, K=3, switch_frames=4))
+    ctl.reset(walker("big"), n_characters=2)
+    cmd = Commands.hold([1.0, 0.0], 0.0, 0, 8, batch=2).then(
+        Commands.hold([1.0, 0.0], 0.0, 1, 6, 2)
+    )
+    out = ctl.run(cmd, 14, torch.Generator().manual_seed(0))
+    assert out.frames.shape == (2, 14, D) and out.positions.shape == (2, 14, J, 3)
+    assert torch.isfinite(out.positions).all()
+    assert out.replans == [0, 3, 6, 8, 11]  # every M = 3 frames, and at once at frame 8
+    assert [g[0].item() for g in out.gammas] == pytest.approx([1, 1, 1, 0.7, 0.7])
+    assert out.trajectories[0].shape == (2, F, 3)
+    more = ctl.run(Commands.hold([1.0, 0.0], 0.0, 1, 5, 2), 5)  # continues where it stopped
+    assert more.frames.shape == (2, 5, D)
+
+
+def test_a_start_of_another_style_is_a_style_change(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt, ControlConfig(M=3, switch_frames=4))
+    ctl.reset(walker("big"), n_characters=2, style=["big", "small"])
+    out = ctl.run(Commands.hold([1.0, 0.0], 0.0, 1, 9, batch=2), 9)
+    assert torch.stack(out.gammas).flatten().tolist() == pytest.approx([0.7, 1, 0.7, 1, 1, 1])
+    with pytest.raises(InputError, match="one of the model's styles"):
+        ctl.reset(walker("big"), style="drunk")
+
+
+def test_the_controller_without_hfte_still_runs(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt, ControlConfig(M=4, extend=False))
+    ctl.reset(walker("small"))
+    out = ctl.run(Commands.hold([0.5, 0.5], 1.0, 1, 10), 10, torch.Generator().manual_seed(1))
+    assert torch.isfinite(out.frames).all() and out.replans == [0, 4, 8]
+
+
+def test_frechet_distance():
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
+    b = torch.randn(4000, 3, generator=g, dtype=torch.float64) + torch.tensor([1.0, 0.0, 0.0])
+    assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert frechet_distance(a, b) == pytest.approx(1.0, abs=0.15)
+
+
+# ------------------------------------------------------------------------------ bad input
+
+
+def test_an_unknown_style_lists_the_known_ones(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt)
+    past, traj = torch.zeros(1, P, D), torch.zeros(1, F, 4)
+    with pytest.raises(InputError, match=r"must be one of the model's styles \['big', 'small'\]"):
+        ctl.plan(past, "drunk", traj)
+    with pytest.raises(InputError, match=r"index in \[0, 1\]"):
+        ctl.plan(past, 5, traj)
+
+
+@pytest.mark.parametrize(
+    "traj, words",
+    [
+        (torch.zeros(1, F - 1, 4), rf"trajectory must have shape \(B, {F}, 4\)"),
+        (torch.zeros(1, F, 3), rf"trajectory must have shape \(B, {F}, 4\)"),
+        (torch.zeros(2, F, 4), rf"trajectory must have shape \(1, {F}, 4\)"),
+        (
+            torch.full((1, F, 4), float("nan")),
+            rf"trajectory must be finite \(shape \(B, {F}, 4\)\)",
+        ),
+        (torch.full((1, F, 4), float("inf")), "must be finite"),
+    ],
+)
+def test_a_bad_trajectory_names_the_expected_shape(tiny, traj, words):
+    ckpt, _ = tiny
+    with pytest.raises(InputError, match=words):
+        CAMDMController(ckpt).plan(torch.zeros(1, P, D), "big", traj)
+
+
+def test_bad_commands_name_the_expected_shape(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt)
+    ctl.reset(walker("big"))
+    short = Commands.hold([1.0, 0.0], 0.0, 0, 5)
+    with pytest.raises(InputError, match=r"commands.velocity must have shape \(1, N >= 9, 2\)"):
+        ctl.run(short, 9)
+    nan = Commands.hold([float("nan"), 0.0], 0.0, 0, 9)
+    with pytest.raises(InputError, match="commands.velocity must be finite"):
+        ctl.run(nan, 9)
+    with pytest.raises(InputError, match=r"style indices in \[0, 1\]"):
+        ctl.run(Commands.hold([1.0, 0.0], 0.0, 7, 9), 9)
+
+
+def test_a_start_of_another_skeleton_is_refused(tiny):
+    ckpt, _ = tiny
+    ctl = CAMDMController(ckpt)
+    with pytest.raises(MismatchError, match="another skeleton"):
+        ctl.reset(walker("big", names=("pelvis", "torso", "thighL", "thighR")))
+
+
+def test_a_checkpoint_for_another_skeleton_or_style_set_is_refused(tiny):
+    ckpt, _ = tiny
+    other = walker("big", names=("pelvis", "torso", "thighL", "thighR")).skeleton
+    with pytest.raises(CheckpointMismatchError, match="another skeleton") as e:
+        load_camdm(ckpt.paths.weights, expected_skeleton=other)
+    assert "Hips" in str(e.value) and "pelvis" in str(e.value)
+    with pytest.raises(CheckpointMismatchError, match="another style set") as e:
+        load_camdm(ckpt.paths.weights, expected_styles=["happy", "sad"])
+    assert "['big', 'small']" in str(e.value) and "['happy', 'sad']" in str(e.value)
+
+
+def test_a_classifier_of_another_style_set_is_refused(tmp_path):
+    from minimdm.camdm.classifier import ClassifierNetConfig, StyleClassifier, style_accuracy
+    from minimdm.checkpoint import save_checkpoint
+
+    net_ = StyleClassifier(ClassifierNetConfig(3 + 12 * J, 2, width=8, feature_dim=4))
+    save_checkpoint(tmp_path, net_, {"styles": ["big", "small"], "config": {"window": 60}})
+    with pytest.raises(CheckpointMismatchError, match="another style set") as e:
+        load_classifier(tmp_path, expected_styles=["happy", "sad"])
+    assert "['big', 'small']" in str(e.value) and "['happy', 'sad']" in str(e.value)
+    ckpt = load_classifier(tmp_path, expected_styles=["big", "small"])
+    with pytest.raises(InputError, match=r"frames must be world frames of shape \(B, N >= 60, D\)"):
+        style_accuracy(ckpt, torch.zeros(1, 30, D), torch.zeros(1))
+
+
+def test_the_camdm_command_reports_a_missing_config_in_one_line(capsys, tmp_path):
+    code = main(["camdm", "train", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith("minimdm camdm train: error:") and "nope.yaml" in err
+
+
+# ------------------------------------------------------------------------------ shipped
+
+
+def test_the_shipped_checkpoints_load_and_record_their_command():
+    ckpt = minimdm.pretrained("camdm")
+    assert ckpt.kind == "camdm"
+    assert ckpt.metadata["command"].startswith("minimdm camdm train configs/camdm.yaml")
+    assert ckpt.paths.weights.stat().st_size <= 5_000_000
+    layout = CAMDMLayout.from_dict(ckpt.feature_layout)
+    assert (layout.past, layout.future, len(layout.styles)) == (10, 45, 15)
+    assert ckpt.schedule().T == 8
+    cls = load_classifier(
+        minimdm.CHECKPOINT_DIR / "camdm_classifier", expected_styles=layout.styles
+    )
+    assert cls.metadata["command"].startswith("minimdm camdm classifier configs/")
+    assert cls.metadata["heldout_accuracy"] > 0.5
