@@ -10,16 +10,17 @@ then one line for the deterministic MSE regressor (the one-to-one baseline). Not
     python benchmarks/squ9_steps.py                  # T in 1 2 5 10 20 50 100, CPU
     python benchmarks/squ9_steps.py --quick          # fewer steps and T values, ~30 s
     python benchmarks/squ9_steps.py --device cuda --T 5 40 200 --steps 4000
+    python benchmarks/squ9_steps.py --T 5 20 100 --seeds 0 1 2 --threads 1 \\
+        --save benchmarks/results/squ9_steps.jsonl     # chapter 1's table, 3 seeds
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import torch
-from common import hardware, sync
+from common import emit, hardware, sync
 
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.diffusion import NoiseSchedule, ddpm_sample
@@ -42,11 +43,19 @@ def main() -> None:
     p.add_argument("--depth", type=int, default=4)
     p.add_argument("--n-train", type=int, default=20_000)
     p.add_argument("--n-eval", type=int, default=4000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run per seed")
+    p.add_argument("--save", default=None, help="append the JSON lines to this file")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--quick", action="store_true", help="T in 1 5 20, 500 steps")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     args = p.parse_args()
+    for seed in args.seeds:
+        args.seed = seed
+        run(args)
+
+
+def run(args: argparse.Namespace) -> None:
+    """Every T and the regressor for one seed (data, weights, batches and sampling noise)."""
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.quick:
@@ -101,7 +110,7 @@ def main() -> None:
             "ms_per_step": round(1000 * sample_s / T, 3),
             "ms_per_sample_batch": round(1000 * sample_s, 2),
         }
-        print(json.dumps(row), flush=True)
+        emit(row, args.save)
 
     torch.manual_seed(args.seed)
     reg = MLPRegressor(2, 2, args.width, args.depth).to(dev)
@@ -127,7 +136,7 @@ def main() -> None:
         "ms_per_step": round(1000 * sample_s, 3),
         "ms_per_sample_batch": round(1000 * sample_s, 2),
     }
-    print(json.dumps(row), flush=True)
+    emit(row, args.save)
 
 
 if __name__ == "__main__":

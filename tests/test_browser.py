@@ -248,12 +248,12 @@ def test_later_player_alone_in_a_new_browser_keeps_its_poster(browser, site):
 def test_book_pages_are_offline_and_render_maths(browser, site):
     base, html = site
     pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
-    pages += ["intro.html", "bibliography.html"]
+    pages += ["intro.html", "notation.html", "glossary.html", "bibliography.html"]
     assert len(pages) >= 8
     v, n_players = Visit(browser, base), 0
     for name in pages:
         p = v.open(name)
-        if name.startswith("notebooks/"):
+        if name.startswith("notebooks/") or name in ("notation.html", "glossary.html"):
             p.wait_for_function("window.MathJax && MathJax.startup && MathJax.startup.promise")
             p.evaluate("MathJax.startup.promise.then(() => document.fonts.ready).then(() => 1)")
             assert p.locator("mjx-container").count() > 0, f"{name}: no rendered maths"
@@ -309,3 +309,31 @@ def check_players(p, name: str) -> int:
             shot_path = Path(folder) / f"{Path(name).stem}_player{i}.png"
             players.nth(i).screenshot(path=str(shot_path))
     return n
+
+
+def test_exercise_solutions_are_hidden_until_clicked(browser, site):
+    """Every sphinx-exercise solution starts folded and opens with its toggle button."""
+    base, html = site
+    v = Visit(browser, base)
+    pages = [
+        str(f.relative_to(html))
+        for f in sorted((html / "notebooks").glob("*.html"))
+        if 'class="solution' in f.read_text()
+    ]
+    assert pages, "no chapter uses sphinx-exercise solutions"
+    for name in pages:
+        p = v.open(name)
+        p.wait_for_selector("div.solution button.toggle-button", state="attached")
+        solutions = p.locator("div.solution")
+        assert p.locator("div.exercise").count() >= solutions.count() > 0
+        for i in range(solutions.count()):
+            body = solutions.nth(i).locator("section#solution-content")
+            assert not body.is_visible(), f"{name}: solution {i + 1} is shown before a click"
+        first = solutions.nth(0)
+        first.scroll_into_view_if_needed()
+        first.locator("button.toggle-button").click()
+        first.locator("section#solution-content").wait_for(state="visible")
+        if name.endswith("08_acceleration_ddgan.html"):
+            keep(p, "chapter8_solution_open", full_page=False)
+        v.check_clean()
+    v.context.close()

@@ -661,3 +661,62 @@ def _e2e_squ9():
     m = squ9_metrics(x_eval, x_gen, sq)
     assert m["coverage"] == 1.0, m["coverage_per_mode"]
     assert m["precision"] > E2E_PRECISION_BOUND, m["precision"]
+
+
+# ----------------------------------------------------------------------------------------------
+# v-prediction (Salimans & Ho 2022): the third parameterisation of chapter 1
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    kind=st.sampled_from(KINDS),
+    T=st.sampled_from(TS),
+    frac=st.floats(0, 1),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_v_conversions_invert_q_sample(kind, T, frac, seed):
+    from minimdm.diffusion import predict_eps_from_v, predict_v, predict_x0_from_v
+
+    s = NoiseSchedule(kind, T)
+    t = min(int(frac * T), T - 1)
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    eps = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    x_t = q_sample(s, x0, t, noise=eps)
+    v = predict_v(s, x0, t, eps)
+    # v, x0, eps and x_t are a rotation of each other: both conversions are exact and bounded
+    torch.testing.assert_close(predict_x0_from_v(s, x_t, t, v), x0, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(predict_eps_from_v(s, x_t, t, v), eps, rtol=1e-5, atol=1e-5)
+    # an error in v reaches x0 shrunk by sqrt(1 - abar) <= 1
+    err = predict_x0_from_v(s, x_t, t, v + 0.1) - x0
+    assert err.abs().max() <= 0.1 + 1e-5
+
+
+def test_v_prediction_loss_sampler_and_model():
+    from minimdm.diffusion import ddim_sample, ddpm_sample, predict_v
+
+    s = NoiseSchedule("cosine", 20)
+    c = torch.tensor([[0.5, -1.0]]).expand(64, 2)
+
+    def v_oracle(x_t, t, cond):  # knows the (constant) data: v from x_t and x0
+        eps = predict_eps_from_x0(s, x_t, t, c[: len(x_t)])
+        return predict_v(s, c[: len(x_t)], t, eps)
+
+    loss, x0_hat = diffusion_loss(
+        v_oracle, s, c, generator=torch.Generator().manual_seed(0), predicts="v"
+    )
+    assert loss.item() < 1e-8
+    torch.testing.assert_close(x0_hat, c, rtol=1e-4, atol=1e-4)
+    for sample in (ddpm_sample, ddim_sample):
+        out = sample(v_oracle, s, (64, 2), predicts="v", generator=torch.Generator().manual_seed(1))
+        torch.testing.assert_close(out, c, rtol=1e-3, atol=1e-3)
+    net = MLPDenoiser(
+        DenoiserConfig(x_dim=2, cond_dim=0, width=16, depth=2, time_dim=8, predicts="v")
+    )
+    assert net.predicts == "v"
+    with pytest.raises(ValueError, match="predicts must be one of"):
+        MLPDenoiser(
+            DenoiserConfig(x_dim=2, cond_dim=0, width=16, depth=2, time_dim=8, predicts="mu")
+        )
+    with pytest.raises(ValueError, match="predicts must be one of"):
+        diffusion_loss(v_oracle, s, c, predicts="mu")

@@ -160,3 +160,46 @@ def test_trainers_reduce_loss_and_are_seeded():
     expected = -sq.mode_centers[sq.mode_of(x_prev)] / 8
     assert (pred - expected).norm(dim=-1).mean() < 0.1
     assert h[-1] < h[0]
+
+
+def test_posterior_x0_is_the_ideal_denoiser():
+    """The closed form beats any other estimate on the x0 loss and matches a Monte-Carlo mean."""
+    from minimdm.diffusion import NoiseSchedule, q_sample
+
+    sq = Squ9()
+    s = NoiseSchedule("cosine", 20)
+    g = torch.Generator().manual_seed(0)
+    x_prev, x_next = sq.sample_pairs(20_000, g)
+    for t in (0, 10, 19):
+        x_t = q_sample(s, x_next, t, generator=g)
+        ideal = sq.posterior_x0(x_t, x_prev, s.alphas_cumprod[t])
+        err = ((ideal - x_next) ** 2).sum(-1).mean()
+        for other in (x_t, torch.zeros_like(x_t), ideal + 0.05):
+            assert err < ((other - x_next) ** 2).sum(-1).mean()
+    # at the noisiest level the answer is the mean of the 8 allowed targets, -c_k / 8
+    src = sq.mode_of(x_prev)
+    x_t = torch.randn(x_prev.shape, generator=g)
+    ideal = sq.posterior_x0(x_t, x_prev, 1e-8)
+    torch.testing.assert_close(ideal, -sq.mode_centers[src] / 8, atol=1e-3, rtol=0)
+
+
+def test_parameterisation_study_rows():
+    """The eps/x0/v study of chapter 1: one row per parameterisation, the ideal denoiser's error
+    is the floor of every model's, and the ideal ignores its input at the noisiest level."""
+    from minimdm.studies.squ9_parameterisation import (
+        input_gain_by_level,
+        run_seed,
+        summarize,
+        to_json,
+    )
+
+    rows = run_seed(0, T=5, train=dict(steps=30, batch_size=256, lr=3e-3))
+    assert [r["predicts"] for r in rows] == ["eps", "x0", "v"]
+    for r in rows:
+        assert len(r["x0_err"]) == len(r["ideal_err"]) == len(r["input_gain"]) == 5
+        assert all(m >= i - 1e-3 for m, i in zip(r["x0_err"], r["ideal_err"], strict=True))
+        assert "model" not in to_json(r)
+    summary = summarize(rows + [{**r, "seed": 1} for r in rows])
+    assert summary[0]["n_seeds"] == 2 and summary[0]["coverage"][1] == 0
+    ideal = input_gain_by_level(None, NoiseSchedule("cosine", 20), Squ9(), n=500)
+    assert abs(ideal[-1]) < 0.01 and ideal[0] > 0.3

@@ -138,3 +138,24 @@ def test_num_threads_rejects_a_bad_count(n):
         with num_threads(n):
             pass
     assert torch.get_num_threads() == before
+
+
+def test_summarize_seeds_groups_and_reads(tmp_path):
+    import json
+    import math
+
+    from minimdm.studies.seeds import mean_std, read_jsonl, summarize_seeds
+
+    rows = [{"m": "a", "seed": s, "x": float(s)} for s in range(3)] + [
+        {"m": "b", "seed": 0, "x": 5.0}
+    ]
+    p = tmp_path / "r.jsonl"
+    p.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    out = summarize_seeds(read_jsonl(p), "m", ["x"])
+    assert out[0] == {"m": "a", "n_seeds": 3, "x": (1.0, 1.0)}
+    assert out[1]["n_seeds"] == 1 and math.isnan(out[1]["x"][1])
+    assert read_jsonl(p, m="b") == rows[3:]
+    with pytest.raises(ValueError, match="no lines"):
+        read_jsonl(p, m="c")
+    with pytest.raises(ValueError):
+        mean_std([])

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.checkpoint import register_model_kind
+from minimdm.diffusion.schedule import PREDICTS
 from minimdm.nn import MLP
 
 __all__ = [
@@ -60,7 +61,7 @@ class DenoiserConfig:
     time_dim: int = 128
     """Size of the sinusoidal time embedding e^t before its MLP."""
     predicts: str = "eps"
-    """What the network outputs: 'eps' (A-MDM eq. 3) or 'x0'."""
+    """What the network outputs: 'eps' (A-MDM eq. 3), 'x0' or 'v' (Salimans & Ho 2022)."""
 
 
 class MLPDenoiser(MLP):
@@ -77,8 +78,8 @@ class MLPDenoiser(MLP):
             raise ValueError(
                 f"depth must be >= 2 (one hidden and one output layer), got {config.depth}"
             )
-        if config.predicts not in ("eps", "x0"):
-            raise ValueError(f"predicts must be 'eps' or 'x0', got {config.predicts!r}")
+        if config.predicts not in PREDICTS:
+            raise ValueError(f"predicts must be one of {PREDICTS}, got {config.predicts!r}")
         w = config.width
         time_mlp = MLP(config.time_dim, w, w, depth=2, norm=False).sequential()  # e^t -> (B, W)
         super().__init__(config.x_dim + config.cond_dim, config.x_dim, w, config.depth)

@@ -27,8 +27,8 @@ does not:
 
 Denoisers are callables ``model(x_t, t, cond) -> prediction`` with ``x_t`` of shape ``(B, D)``,
 ``t`` a ``(B,)`` long tensor and ``cond`` a ``(B, C)`` context tensor (or ``None``); the
-prediction is the noise ``eps`` (A-MDM eq. 3) or the clean sample ``x0``, as named by
-``predicts``.
+prediction is the noise ``eps`` (A-MDM eq. 3), the clean sample ``x0`` or the velocity ``v``
+(Salimans & Ho 2022), as named by ``predicts``.
 
 **Hooks.** The chain calls two kinds of hooks, so that control never copies the loop:
 
@@ -65,6 +65,7 @@ from .chain import (
 from .clamp import clamp_hook, clamp_share, clamp_x0, clip_bounds, data_range
 from .samplers import ddim_sample, ddim_timesteps, ddpm_sample, p_mean_variance, p_sample
 from .schedule import (
+    PREDICTS,
     ClipX0,
     Denoiser,
     Hook,
@@ -74,8 +75,11 @@ from .schedule import (
     check_finite,
     diffusion_loss,
     gaussian,
+    predict_eps_from_v,
     predict_eps_from_x0,
+    predict_v,
     predict_x0_from_eps,
+    predict_x0_from_v,
     q_posterior,
     q_posterior_sample,
     q_sample,
@@ -94,6 +98,10 @@ __all__ = [
     "q_posterior_sample",
     "predict_x0_from_eps",
     "predict_eps_from_x0",
+    "predict_v",
+    "predict_x0_from_v",
+    "predict_eps_from_v",
+    "PREDICTS",
     "clip_bounds",
     "clamp_x0",
     "clamp_hook",

@@ -9,13 +9,16 @@ import torch
 from torch import Tensor
 
 from .schedule import (
+    PREDICTS,
     Denoiser,
     Hook,
     NoiseSchedule,
     X0Hook,
     gaussian,
+    predict_eps_from_v,
     predict_eps_from_x0,
     predict_x0_from_eps,
+    predict_x0_from_v,
     q_posterior,
     q_posterior_sample,
 )
@@ -62,11 +65,11 @@ def _check_out(name: str, out: Tensor, x_t: Tensor) -> None:
 
 
 class _DenoiserRule(StepRule):
-    """A denoiser ``model(x_t, t, cond)`` predicting ``eps`` (A-MDM eq. 3) or ``x0``."""
+    """A denoiser ``model(x_t, t, cond)`` predicting ``eps`` (A-MDM eq. 3), ``x0`` or ``v``."""
 
     def __init__(self, model: Denoiser, schedule: NoiseSchedule, predicts: str = "eps") -> None:
-        if predicts not in ("eps", "x0"):
-            raise ValueError(f"predicts must be 'eps' or 'x0', got {predicts!r}")
+        if predicts not in PREDICTS:
+            raise ValueError(f"predicts must be one of {PREDICTS}, got {predicts!r}")
         self.model, self.schedule, self.predicts = model, schedule, predicts
 
     def predict(self, x_t, t, cond, generator):
@@ -74,6 +77,9 @@ class _DenoiserRule(StepRule):
         _check_out("denoiser", out, x_t)
         if self.predicts == "eps":
             return predict_x0_from_eps(self.schedule, x_t, t, out), out
+        if self.predicts == "v":
+            s = self.schedule
+            return predict_x0_from_v(s, x_t, t, out), predict_eps_from_v(s, x_t, t, out)
         return out, None
 
 

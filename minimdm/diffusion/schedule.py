@@ -255,6 +255,41 @@ def predict_eps_from_x0(
     )
 
 
+def predict_v(schedule: NoiseSchedule, x0: Tensor, t: Tensor | int, eps: Tensor) -> Tensor:
+    """The velocity target of v-prediction (Salimans & Ho 2022, §4).
+
+    :math:`v = \\sqrt{\\bar\\alpha_t}\\,\\epsilon - \\sqrt{1-\\bar\\alpha_t}\\,x_0`.
+    """
+    return (
+        _index(schedule.sqrt_alphas_cumprod, t, x0, 1.0) * eps
+        - _index(schedule.sqrt_one_minus_alphas_cumprod, t, x0, 0.0) * x0
+    )
+
+
+def predict_x0_from_v(schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, v: Tensor) -> Tensor:
+    """The clean estimate of a v-prediction: :math:`x_0 = \\sqrt{\\bar\\alpha_t}\\,x_t -
+    \\sqrt{1-\\bar\\alpha_t}\\,v`. An error in ``v`` reaches ``x0`` shrunk by
+    :math:`\\sqrt{1-\\bar\\alpha_t} \\le 1`, where ``eps``-prediction multiplies it by
+    :math:`\\sqrt{1/\\bar\\alpha_t - 1}`."""
+    return (
+        _index(schedule.sqrt_alphas_cumprod, t, x_t, 1.0) * x_t
+        - _index(schedule.sqrt_one_minus_alphas_cumprod, t, x_t, 0.0) * v
+    )
+
+
+def predict_eps_from_v(schedule: NoiseSchedule, x_t: Tensor, t: Tensor | int, v: Tensor) -> Tensor:
+    """The noise implied by a v-prediction: :math:`\\epsilon = \\sqrt{1-\\bar\\alpha_t}\\,x_t +
+    \\sqrt{\\bar\\alpha_t}\\,v`."""
+    return (
+        _index(schedule.sqrt_one_minus_alphas_cumprod, t, x_t, 0.0) * x_t
+        + _index(schedule.sqrt_alphas_cumprod, t, x_t, 1.0) * v
+    )
+
+
+PREDICTS = ("eps", "x0", "v")
+"""What a denoiser may output: the noise (A-MDM eq. 3), the clean sample, or the velocity."""
+
+
 def q_posterior_sample(
     schedule: NoiseSchedule,
     x0: Tensor,
@@ -288,9 +323,10 @@ def diffusion_loss(
     """The simple DDPM loss (A-MDM eq. 3) at a uniformly drawn step per sample.
 
     With ``predicts="eps"``: :math:`\\|\\epsilon - p_\\theta(x_{f-1}, x_f^t, e^t)\\|^2`; with
-    ``"x0"`` the target is the clean sample. Returns ``(loss, x0_hat)``; ``x0_hat`` is the
-    model's reconstruction, which scheduled sampling feeds forward as the next condition
-    (A-MDM §3.2). ``reduce=False`` returns the per-sample loss.
+    ``"x0"`` the target is the clean sample, with ``"v"`` the velocity :func:`predict_v`.
+    Returns ``(loss, x0_hat)``; ``x0_hat`` is the model's reconstruction, which scheduled
+    sampling feeds forward as the next condition (A-MDM §3.2). ``reduce=False`` returns the
+    per-sample loss.
     """
     B = x0.shape[0]
     t = torch.randint(0, schedule.T, (B,), generator=generator, device=x0.device)
@@ -301,7 +337,9 @@ def diffusion_loss(
         target, x0_hat = noise, predict_x0_from_eps(schedule, x_t, t, out)
     elif predicts == "x0":
         target, x0_hat = x0, out
+    elif predicts == "v":
+        target, x0_hat = predict_v(schedule, x0, t, noise), predict_x0_from_v(schedule, x_t, t, out)
     else:
-        raise ValueError(f"predicts must be 'eps' or 'x0', got {predicts!r}")
+        raise ValueError(f"predicts must be one of {PREDICTS}, got {predicts!r}")
     loss = ((out - target) ** 2).flatten(1).mean(1)
     return (loss.mean() if reduce else loss), x0_hat
