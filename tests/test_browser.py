@@ -28,45 +28,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import _unavailable
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM = ("/usr/bin/chromium", "/usr/bin/chromium-browser")
-ARGS = [
-    "--no-sandbox",  # CI runs as root
-    "--use-angle=swiftshader",  # WebGL on the CPU: no GPU, no display
-    "--enable-unsafe-swiftshader",
-    "--disable-background-networking",  # and no network of its own
-    "--disable-component-update",
-    "--disable-sync",
-    "--disable-default-apps",
-    "--disable-extensions",
-    "--no-first-run",
-]
-
-
-def _unavailable(why: str) -> None:
-    msg = (
-        f"{why}: install Chromium with `apt-get install -y chromium` (and `pip install playwright`)"
-    )
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(f"CI must run the browser test, but {msg}")
-    pytest.skip(msg)
-
-
-@pytest.fixture(scope="module")
-def browser():
-    exe = next((p for p in CHROMIUM if Path(p).exists()), shutil.which("chromium"))
-    if exe is None:
-        _unavailable("no Chromium found")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        _unavailable("Playwright is not installed")
-    with sync_playwright() as pw:
-        # launch() starts from a fresh, temporary profile each time
-        b = pw.chromium.launch(executable_path=exe, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 def two_players() -> tuple[str, str]:

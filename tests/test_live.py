@@ -19,7 +19,6 @@ import threading
 from pathlib import Path
 
 import pytest
-from test_browser import ARGS, CHROMIUM, _unavailable
 
 ROOT = Path(__file__).resolve().parents[1]
 STATIC = ROOT / "minimdm" / "viz" / "static"
@@ -63,21 +62,6 @@ def site(tmp_path_factory):
     threading.Thread(target=server.serve_forever, daemon=True).start()
     yield f"http://127.0.0.1:{server.server_port}"
     server.shutdown()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    exe = next((p for p in CHROMIUM if Path(p).exists()), shutil.which("chromium"))
-    if exe is None:
-        _unavailable("no Chromium found")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        _unavailable("Playwright is not installed")
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=exe, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 def _open(browser, url):
