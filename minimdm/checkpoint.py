@@ -23,7 +23,7 @@ import json
 import math
 import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from glob import escape as glob_escape
 from pathlib import Path
@@ -48,6 +48,7 @@ __all__ = [
     "save_checkpoint",
     "load_checkpoint",
     "load_train_state",
+    "resume_training",
     "update_metadata",
     "model_spec",
     "build_model",
@@ -578,6 +579,48 @@ def load_train_state(path: str | os.PathLike) -> tuple[dict, dict]:
             f"training state {paths.train}: its tensor index does not match its tensors ({e!r}); "
             "the file is damaged"
         ) from e
+
+
+def resume_training(
+    out_dir: str | os.PathLike,
+    config: dict,
+    model: Any,
+    optimizer: Any,
+    generator: torch.Generator,
+    ema: Any = None,
+    resumable: Iterable[str] = (),
+) -> tuple[int, float]:
+    """Continue an interrupted training run from ``out_dir``'s training state, if it has one.
+
+    The saved run's config must equal ``config`` except for the ``resumable`` keys (budgets,
+    intervals, device): resuming with another model or learning rate would mix two runs, so it
+    raises, naming each difference. Loads the model, the optimizer, the EMA copy (if given) and
+    the batch generator in place.
+
+    Returns:
+        ``(step, seconds)``: the step to continue from and the training time already spent,
+        ``(0, 0.0)`` when ``out_dir`` holds no training state.
+    """
+    paths = checkpoint_paths(out_dir)
+    if not paths.train.exists():
+        return 0, 0.0
+    meta, state = load_train_state(out_dir)
+    saved = meta.get("config", {})
+    keys = sorted((set(saved) | set(config)) - set(resumable))
+    diff = [
+        f"{k}: {saved.get(k)!r} vs {config.get(k)!r}" for k in keys if saved.get(k) != config.get(k)
+    ]
+    if diff:
+        raise ValueError(
+            f"cannot resume from {paths.train}: its config differs from this run's "
+            f"(saved vs now): {'; '.join(diff)}. Use another out_dir or resume=False."
+        )
+    model.load_state_dict(state["model"])
+    if ema is not None:
+        ema.load_state_dict(state["ema"])
+    optimizer.load_state_dict(state["optimizer"])
+    generator.set_state(state["generator"].to(torch.uint8))
+    return int(state["step"]), float(meta.get("train_seconds", 0.0))
 
 
 def update_metadata(

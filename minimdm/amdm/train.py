@@ -65,7 +65,7 @@ from minimdm.checkpoint import (
     Checkpoint,
     checkpoint_paths,
     load_checkpoint,
-    load_train_state,
+    resume_training,
     save_checkpoint,
 )
 from minimdm.diffusion import (
@@ -150,11 +150,6 @@ _RESUMABLE_CHANGES = {
     "device",
     "config_file",
 }
-
-
-def _config_diff(a: dict, b: dict) -> list[str]:
-    keys = sorted((set(a) | set(b)) - _RESUMABLE_CHANGES)
-    return [f"{k}: {a.get(k)!r} vs {b.get(k)!r}" for k in keys if a.get(k) != b.get(k)]
 
 
 def train_amdm(
@@ -246,25 +241,12 @@ def _train(
     trained = model if world.size == 1 else DistributedDataParallel(model)
     opt = torch.optim.Adam(params, lr=config.lr)
     gen = torch.Generator(device=device).manual_seed(config.seed)
-    step = 0
-    prior_seconds = 0.0  # training time of the runs this one resumes
-
     paths = checkpoint_paths(out_dir)
-    if resume and paths.train.exists():
-        meta, state = load_train_state(out_dir)
-        diff = _config_diff(meta.get("config", {}), asdict(config))
-        if diff:
-            raise ValueError(
-                f"cannot resume from {paths.train}: its config differs from this run's "
-                f"(saved vs now): {'; '.join(diff)}. Use another out_dir or resume=False."
-            )
-        model.load_state_dict(state["model"])
-        if ema is not None:
-            ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"].to(torch.uint8))
-        step = int(state["step"])
-        prior_seconds = float(meta.get("train_seconds", 0.0))
+    step, prior_seconds = 0, 0.0  # prior_seconds: training time of the runs this one resumes
+    if resume:
+        step, prior_seconds = resume_training(
+            out_dir, asdict(config), model, opt, gen, ema, resumable=_RESUMABLE_CHANGES
+        )
     if world.size > 1:  # each process draws its own batches: a generator per rank and start
         gen.manual_seed(config.seed + 7919 * world.rank + 104729 * step)
 

@@ -40,7 +40,7 @@ from minimdm.checkpoint import (
     CheckpointMismatchError,
     checkpoint_paths,
     load_checkpoint,
-    load_train_state,
+    resume_training,
     save_checkpoint,
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
@@ -242,26 +242,12 @@ def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
     opt = torch.optim.Adam(params, lr=config.lr)
     gen = torch.Generator().manual_seed(config.seed)
     sigmas = [0.0, 0.0, 5.0, 10.0] if config.smooth_sigmas is None else list(config.smooth_sigmas)
-    step, prior_seconds = 0, 0.0
     paths = checkpoint_paths(out_dir)
-    if resume and paths.train.exists():
-        meta, state = load_train_state(out_dir)
-        saved = {k: v for k, v in meta.get("config", {}).items() if k not in _RESUMABLE}
-        now = {k: v for k, v in asdict(config).items() if k not in _RESUMABLE}
-        if saved != now:
-            diff = [
-                f"{k}: {saved.get(k)!r} vs {now.get(k)!r}" for k in now if saved.get(k) != now[k]
-            ]
-            raise ValueError(
-                f"cannot resume from {paths.train}: its config differs from this run's "
-                f"(saved vs now): {'; '.join(diff)}. Use another out_dir or resume=False."
-            )
-        model.load_state_dict(state["model"])
-        if ema is not None:
-            ema.load_state_dict(state["ema"])
-        opt.load_state_dict(state["optimizer"])
-        gen.set_state(state["generator"].to(torch.uint8))
-        step, prior_seconds = int(state["step"]), float(meta.get("train_seconds", 0.0))
+    step, prior_seconds = 0, 0.0
+    if resume:
+        step, prior_seconds = resume_training(
+            out_dir, asdict(config), model, opt, gen, ema, resumable=_RESUMABLE
+        )
     meta_base = {
         **metadata,
         "config": asdict(config),
