@@ -17,12 +17,17 @@ changes. A plan:
    with CFG on the past motion at ``gamma_switch`` (0.7) for re-plans within ``switch_frames``
    of a style change, else at ``gamma`` (1: the conditional model alone).
 
-:meth:`CAMDMController.plan` is one such sampling call from given past motion and trajectory.
+:meth:`CAMDMController.plan` is one such sampling call from given past motion and trajectory;
+:meth:`~CAMDMController.sample_plan` is its arithmetic on checked tensors, which the fast path
+traces into one ONNX graph (:class:`minimdm.fast.CAMDMPlan`). ``planner=`` hands the planning
+calls to such a graph: ``CAMDMController(ckpt, planner=minimdm.fast.fast_frame(ckpt))`` gives
+the eager controller's frames within float rounding (1e-4) for the same generator.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,6 +36,7 @@ from torch import Tensor
 
 from minimdm.amdm.sampling import autoregress
 from minimdm.checkpoint import Checkpoint
+from minimdm.diffusion import NoiseTape
 from minimdm.motion.data import Clip
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton, wrap_angle
@@ -40,13 +46,14 @@ from minimdm.validate import (
     InputTypeError,
     check_generator,
     check_int,
+    check_number,
     check_skeleton,
     describe,
 )
 
 from .data import CAMDMLayout, frame_positions, headings, to_canonical, to_world, world_frames
 from .model import CAMDM, Conditions
-from .sampling import sample_future
+from .sampling import gamma_per_sample, sample_future
 from .train import load_camdm
 from .trajectory import blend_trajectories, extend_trajectory, spring_headings, spring_positions
 
@@ -128,6 +135,12 @@ class CAMDMController:
 
     ``reset(start)`` sets the characters' last P frames; ``run(commands, n_frames)`` continues
     from where the last run stopped, so a widget can drive it piece by piece.
+
+    ``planner`` (None: the eager chain in PyTorch) makes the planning calls instead of
+    :meth:`sample_plan`: ``planner(past, generator, style=, trajectory=, gamma=) -> (B, F, D)``
+    with :meth:`plan`'s units, e.g. a :class:`minimdm.fast.FastFrame` of this checkpoint's
+    ``camdm`` graph, which draws the same noise from the generator. Its ``metadata`` (if any)
+    must name this model's P, F, D and the config's ``guide``.
     """
 
     def __init__(
@@ -135,6 +148,7 @@ class CAMDMController:
         checkpoint: Checkpoint | str | os.PathLike,
         config: ControlConfig | None = None,
         device: torch.device | str = "cpu",
+        planner: Callable[..., Tensor] | None = None,
     ) -> None:
         if isinstance(checkpoint, (str, os.PathLike)):
             checkpoint = load_camdm(checkpoint, device=device)
@@ -155,6 +169,23 @@ class CAMDMController:
         self.traj_norm = Normalizer.from_dict(norms["traj"])
         self.schedule = checkpoint.schedule(self.device)
         self.history: Tensor | None = None
+        self.planner = self._check_planner(planner)
+
+    def _check_planner(self, planner: Any) -> Callable[..., Tensor] | None:
+        if planner is None:
+            return None
+        if not callable(planner):
+            raise InputTypeError(f"planner must be callable or None, got {describe(planner)}")
+        meta = getattr(planner, "metadata", None)
+        if meta is not None:
+            L = self.layout
+            want = {"kind": "camdm", "P": L.past, "F": L.future, "D": L.dim,
+                    "guide": self.config.guide}  # fmt: skip
+            got = {"kind": meta.get("kind"), **{k: meta.get("plan", {}).get(k) for k in
+                   ("P", "F", "D", "guide")}}  # fmt: skip
+            if got != want:
+                raise InputError(f"planner must be a CAMDM planning call with {want}, got {got}")
+        return planner
 
     # ---------------------------------------------------------------- one planning call
     @torch.no_grad()
@@ -168,7 +199,9 @@ class CAMDMController:
         guide: str = "past",
     ) -> Tensor:
         """Sample the future ``(B, F, D)`` from past frames ``(B, P, D)`` and a trajectory
-        ``(B, F, 4)`` (x, y, cos, sin), all in the frame of the last past frame, and styles."""
+        ``(B, F, 4)`` (x, y, cos, sin), all in the frame of the last past frame, and styles.
+
+        The inputs are checked, then :meth:`sample_plan` (or the ``planner``) samples."""
         L = self.layout
         past = self._check("past", past, (L.past, L.dim), "frames of the model's skeleton")
         B = past.shape[0]
@@ -184,13 +217,45 @@ class CAMDMController:
         elif s.shape != (B,):
             raise InputError(f"style must be one style or {B} (one per past motion), got {len(s)}")
         check_generator("generator", generator, self.device)
+        if guide not in ("past", "style"):
+            raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+        if not isinstance(gamma, Tensor):
+            gamma = check_number("gamma", gamma)
+        gamma = gamma_per_sample(gamma, B, self.device)
+        past, traj = past.to(self.device), traj.to(self.device)
+        if self.planner is None:
+            return self.sample_plan(past, s, traj, generator, gamma, guide)
+        if guide != self.config.guide:
+            raise InputError(
+                f"guide: the planner guides on {self.config.guide!r} (the config's), got {guide!r}"
+            )
+        future = self.planner(past, generator, style=s, trajectory=traj, gamma=gamma)
+        return future.to(self.device)
+
+    def sample_plan(
+        self,
+        past: Tensor,
+        style: Tensor,
+        trajectory: Tensor,
+        generator: torch.Generator | NoiseTape | None,
+        gamma: Tensor,
+        guide: str = "past",
+    ) -> Tensor:
+        """One planning call on checked tensors: the future ``(B, F, D)`` from ``past``
+        ``(B, P, D)``, ``style`` (B,) indices, ``trajectory`` (B, F, 4) and ``gamma`` (B,).
+
+        It normalizes the conditions, samples 8 denoising steps with CFG (:func:`~minimdm.camdm.
+        sampling.sample_future`) and denormalizes. ``generator`` may be a
+        :class:`~minimdm.diffusion.NoiseTape`: the fast path traces this call.
+        """
+        L = self.layout
         P = L.past
         mean = self.window_norm.mean.view(-1, L.dim).to(self.device)
         std = self.window_norm.std.view(-1, L.dim).to(self.device)
         cond = Conditions(
-            (past.to(self.device) - mean[:P]) / std[:P],
-            s,
-            self.traj_norm.normalize(traj.to(self.device).flatten(1)).view_as(traj),
+            (past - mean[:P]) / std[:P],
+            style,
+            self.traj_norm.normalize(trajectory.flatten(1)).view_as(trajectory),
         )
         x0 = sample_future(self.model, self.schedule, cond, generator, gamma=gamma, guide=guide)
         return x0 * std[P:] + mean[P:]  # (B, F, D)

@@ -12,7 +12,8 @@ style label (CFG-S, ``guide="style"``). Both halves run in **one** forward pass:
 doubled, conditional rows first. At ``gamma = 1`` the combination is the conditional model
 itself, so the rule calls the conditional model alone (as the paper does, to save the second
 half): the sample is then bit for bit that of the conditional model. ``gamma`` may differ per
-sample (a controller switches style for some characters only).
+sample (a controller switches style for some characters only). A traced chain (the fast path,
+:mod:`minimdm.fast`, where ``gamma`` is an input of the graph) always runs both halves.
 
 :func:`sample_future` draws F future frames for a batch of conditions.
 """
@@ -22,15 +23,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from minimdm.diffusion import DDPMStep, NoiseSchedule, StepCount, reverse_chain
+from minimdm.diffusion import DDPMStep, NoiseSchedule, NoiseTape, StepCount, gaussian, reverse_chain
 from minimdm.validate import InputError, check_number
 
 from .model import CAMDM, Conditions
 
-__all__ = ["GuidedStep", "guided_x0", "sample_future"]
+__all__ = ["GuidedStep", "guided_x0", "gamma_per_sample", "sample_future"]
 
 
-def _gammas(gamma: float | Tensor, B: int, device: torch.device) -> Tensor:
+def gamma_per_sample(gamma: float | Tensor, B: int, device: torch.device | str) -> Tensor:
+    """(B,) float32 CFG scales from one number or one per sample; refuses other shapes, NaN."""
     g = torch.as_tensor(gamma, dtype=torch.float32, device=device)
     if g.dim() == 0:
         g = g.expand(B)
@@ -47,10 +49,12 @@ def guided_x0(
     When every row has ``gamma = 1`` the model runs once on the B rows: the conditional model
     exactly. Otherwise it runs once on 2 B rows (``cond``, then ``cond`` without ``guide``) and
     combines the halves; rows with ``gamma = 1`` take the conditional half as it is (equal to a
-    call on B rows up to the float rounding of the larger batch).
+    call on B rows up to the float rounding of the larger batch). Under tracing
+    (:mod:`minimdm.fast`) ``gamma`` is an input of the graph, which keeps the 2 B rows for every
+    ``gamma``.
     """
-    g = _gammas(gamma, x_t.shape[0], x_t.device)
-    if bool((g == 1).all()):
+    g = gamma_per_sample(gamma, x_t.shape[0], x_t.device)
+    if not torch.jit.is_tracing() and bool((g == 1).all()):
         return model(x_t, t, cond)
     both = model(torch.cat([x_t, x_t]), torch.cat([t, t]), cond.cat(cond.without(guide)))
     full, dropped = both.chunk(2)  # G(x_t; p, c), G(x_t; ∅, c)
@@ -85,19 +89,22 @@ def sample_future(
     model: CAMDM,
     schedule: NoiseSchedule,
     cond: Conditions,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | NoiseTape | None = None,
     *,
     gamma: float | Tensor = 1.0,
     guide: str = "past",
     count: StepCount | None = None,
 ) -> Tensor:
     """Draw the clean future ``(B, F, D)`` (normalized units) for conditions of B windows: the
-    ancestral chain over the schedule's T levels (CAMDM: T = 8) with :class:`GuidedStep`."""
+    ancestral chain over the schedule's T levels (CAMDM: T = 8) with :class:`GuidedStep`.
+
+    ``generator`` may be a :class:`~minimdm.diffusion.NoiseTape` (the fast path): its draws are
+    x_T, then one (F D) block per step but the last."""
     if not isinstance(gamma, Tensor):
         gamma = check_number("gamma", gamma)
     c = model.config
     shape = (cond.batch, c.future, c.dim)
     device = cond.past.device
-    x = torch.randn(shape, generator=generator, device=device)
+    x = gaussian(shape, generator, device)  # x_T (B, F, D)
     rule = GuidedStep(model, schedule, gamma, guide)
     return reverse_chain(rule, x, range(schedule.T - 1, -1, -1), cond, generator, count=count)

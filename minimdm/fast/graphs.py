@@ -12,12 +12,18 @@ noise)`` is therefore a pure function of tensors: the whole frame, every denoisi
   then the pose decoder);
 * ``policy``: the steering policy's mean action, then its steerer, the residual hook of A-MDM
   eq. 7 on the base model's chain (:mod:`minimdm.rl`), as :func:`minimdm.rl.rollout.steer` runs
-  them.
+  them;
+* ``camdm``: a planning call, not one frame: :meth:`minimdm.camdm.controller.CAMDMController.
+  sample_plan`, the F = 45 future frames from the P past ones, all 8 denoising steps of
+  :func:`minimdm.camdm.sampling.sample_future` with classifier-free guidance (CAMDM eq. 5; both
+  model calls in one forward pass), the CFG scale ``gamma`` an input.
 
-:data:`FRAME_GRAPHS` maps a checkpoint kind to its graph. Adding a model (CAMDM's conditional
-transformer, whose planning call is its sampler with classifier-free guidance) is one more
-entry: a :class:`FrameGraph` whose :meth:`~FrameGraph.frame` calls that model's own step with
-the generator it is given.
+:data:`FRAME_GRAPHS` maps a checkpoint kind to its graph. Adding a model is one more entry: a
+:class:`FrameGraph` whose :meth:`~FrameGraph.frame` calls that model's own step with the
+generator it is given. A graph's inputs and output are :class:`Port` s: by default a state
+(B, S) in, the next state (B, S) out, and ``extra_inputs`` (B, width); a graph whose step is
+not "state -> next state" (CAMDM's plan) lists its own (:meth:`FrameGraph.inputs`,
+:meth:`FrameGraph.output`).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -35,10 +41,12 @@ from minimdm.diffusion import NoiseTape, ddim_timesteps
 from minimdm.validate import InputError
 
 __all__ = [
+    "Port",
     "FrameGraph",
     "AMDMFrame",
     "AAMDMFrame",
     "SteeredFrame",
+    "CAMDMPlan",
     "FRAME_GRAPHS",
     "frame_graph",
     "load",
@@ -48,13 +56,26 @@ _RECORD_COLUMNS = 1 << 20
 """Columns of the zero tape that records a chain's draws (more than any chain here takes)."""
 
 
+class Port(NamedTuple):
+    """One input or output of a graph: its name, its shape after the batch, what it means."""
+
+    name: str
+    shape: tuple[int, ...]
+    """The shape of one sample; () for one number per sample."""
+    what: str = ""
+    dtype: str = "float32"
+    """'float32' or 'int64' (indices)."""
+
+
 class FrameGraph(nn.Module):
     """One frame of a model, all its denoising steps, as a function of tensors.
 
     ``state`` (B, S) is what the rollout loop feeds back (normalized features for A-MDM,
     ``[xz, y]`` for AAMDM); ``extra`` are per-frame inputs besides it (a policy's task
     observation); ``noise`` (B, N) is every Gaussian draw of the frame, in the order the chain
-    makes them (:attr:`noise_widths`).
+    makes them (:attr:`noise_widths`). A graph may name other inputs and output
+    (:meth:`inputs`, :meth:`output`; CAMDM's planning call): the first input then plays the
+    state's part, the others the extra inputs'.
     """
 
     kind: str = ""
@@ -76,6 +97,24 @@ class FrameGraph(nn.Module):
         """
         raise NotImplementedError
 
+    def inputs(self) -> tuple[Port, ...]:
+        """Every input but the noise, in order: the state (B, S), then :attr:`extra_inputs`."""
+        return (
+            Port("state", (self.state_dim,)),
+            *(Port(n, (w,), what) for n, w, what in self.extra_inputs),
+        )
+
+    def output(self) -> Port:
+        """The graph's one output: the next state (B, S)."""
+        return Port("next_state", (self.state_dim,))
+
+    def zeros(self, batch: int = 1) -> list[Tensor]:
+        """Zeros of every input's shape and dtype (but the noise), for ``batch`` samples."""
+        return [
+            torch.zeros(batch, *p.shape, dtype=getattr(torch, p.dtype), device=self.device)
+            for p in self.inputs()
+        ]
+
     @torch.no_grad()
     def forward(self, state: Tensor, *rest: Tensor) -> Tensor:
         """``forward(state, *extra, noise)``: :meth:`frame` with the noise as an input."""
@@ -86,8 +125,8 @@ class FrameGraph(nn.Module):
     def _record(self) -> None:
         """Run the frame once on zeros to learn the widths of its draws."""
         tape = NoiseTape(torch.zeros(1, _RECORD_COLUMNS, device=self.device))
-        extra = [torch.zeros(1, w, device=self.device) for _, w, _ in self.extra_inputs]
-        self.frame(torch.zeros(1, self.state_dim, device=self.device), tape, *extra)
+        state, *extra = self.zeros(1)
+        self.frame(state, tape, *extra)
         self.noise_widths = tuple(tape.widths)
 
     @property
@@ -106,9 +145,7 @@ class FrameGraph(nn.Module):
     def example_inputs(self, batch: int = 1) -> tuple[Tensor, ...]:
         """Inputs of the right shapes (the tracer's examples): zeros and the noise."""
         g = torch.Generator(device=self.device).manual_seed(0)
-        extra = [torch.zeros(batch, w, device=self.device) for _, w, _ in self.extra_inputs]
-        state = torch.zeros(batch, self.state_dim, device=self.device)
-        return (state, *extra, self.noise(batch, g))
+        return (*self.zeros(batch), self.noise(batch, g))
 
     def describe(self) -> dict[str, Any]:
         """What a game engine needs besides the graph (stored as the ONNX file's metadata)."""
@@ -124,6 +161,8 @@ def feature_columns(layout: dict | None) -> dict[str, Any] | None:
     """
     if layout is None:
         return None
+    if layout.get("kind") == "camdm":
+        return _camdm_columns(layout)
     from minimdm.motion.features import FeatureLayout
 
     lay = FeatureLayout.from_dict(layout)
@@ -143,6 +182,27 @@ def feature_columns(layout: dict | None) -> dict[str, Any] | None:
         "joint j in the world (z up, metres) = Rz(heading_f) joint_pos_j + (xy_f, 0)"
     )
     return cols
+
+
+def _camdm_columns(layout: dict) -> dict[str, Any]:
+    """Where each quantity lives in a CAMDM frame (:mod:`minimdm.camdm.data`)."""
+    names = list(layout["joint_names"])
+    return {
+        "root": {
+            "columns": [0, 3],
+            "what": "the root's position relative to the reference frame's root ground point, "
+            "in the reference's heading frame (x forward, z up, metres; z is the height)",
+        },
+        "rot": {
+            "columns": [3, 3 + 6 * len(names)],
+            "what": "local joint rotations, 6D (the first two columns of each rotation matrix), "
+            "joints in joint_names order; the root's is relative to the reference heading",
+        },
+        "joint_names": names,
+        "reference": "the last past frame: the character stands at the origin facing +x there",
+        "trajectory": "(F, 4) per future frame: the root's ground position x, y and cos, sin of "
+        "its heading, in the reference frame",
+    }
 
 
 def _settings(ckpt: Checkpoint) -> dict[str, Any]:
@@ -335,10 +395,89 @@ class SteeredFrame(FrameGraph):
         return d
 
 
+class CAMDMPlan(FrameGraph):
+    """CAMDM (§3.2-3.3): one planning call, all T = 8 denoising steps with classifier-free guidance.
+
+    The future F frames from the past P frames, as :meth:`minimdm.camdm.controller.
+    CAMDMController.plan` computes them (in its units: frames in the frame of the last past
+    frame, not normalized; the graph normalizes and denormalizes): both halves of CAMDM eq. 5 in
+    one forward pass at every step, combined with the per-sample scale ``gamma`` (an input: 1
+    gives the conditional model, within float rounding; 0.7 is the controller's value after a
+    style change). ``guide`` ('past': CFG-PM, or 'style': CFG-S) is fixed at export.
+    """
+
+    kind = "camdm"
+
+    def __init__(self, controller, guide: str = "past") -> None:
+        if guide not in ("past", "style"):
+            raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+        super().__init__(controller.layout.dim)
+        self.controller = controller
+        self.model = controller.model  # registered, so that the graph holds the weights
+        self.guide = guide
+        self._record()
+
+    @classmethod
+    def from_checkpoint(
+        cls, ckpt: Checkpoint, steps: int | None = None, eta: float = 1.0, guide: str = "past"
+    ):
+        from minimdm.camdm.controller import CAMDMController
+
+        if steps is not None:
+            raise InputError(
+                f"steps: a CAMDM checkpoint runs its own {ckpt.schedule().T} steps, got "
+                f"steps={steps}"
+            )
+        return cls(CAMDMController(ckpt), guide)
+
+    def inputs(self):
+        L = self.controller.layout
+        P, F, D = L.past, L.future, L.dim
+        return (
+            Port("past", (P, D), f"the last P = {P} frames, in the frame of the last one"),
+            Port("style", (), f"the style's index in styles (0..{len(L.styles) - 1})", "int64"),
+            Port("trajectory", (F, 4), "the future trajectory: x, y, cos, sin per future frame"),
+            Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)"),
+        )
+
+    def output(self):
+        L = self.controller.layout
+        return Port("future", (L.future, L.dim), "the F future frames, in the past's frame")
+
+    def frame(self, past, generator, *extra):
+        style, trajectory, gamma = extra
+        c = self.controller
+        return c.sample_plan(past, style, trajectory, generator, gamma, self.guide)
+
+    def describe(self):
+        c = self.controller
+        L = c.layout
+        T = c.schedule.T
+        return {
+            "sampler": {
+                "name": "ddpm_cfg",
+                "levels": list(range(T - 1, -1, -1)),
+                "predicts": "x0",
+                "guide": self.guide,
+                "cfg": "x0 = G(x_t; ∅) + gamma (G(x_t; cond) - G(x_t; ∅)), both halves in one "
+                "forward pass of 2 B rows; ∅ drops the " + self.guide,
+            },
+            "plan": {"P": L.past, "F": L.future, "D": L.dim, "T": T, "guide": self.guide},
+            "schedule": _schedule_dict(c.schedule),
+            "normalizer": {
+                "window": c.window_norm.to_dict(),
+                "traj": c.traj_norm.to_dict(),
+                "what": "window: (P + F) D values, the past's frames then the future's, "
+                "normalized (x - mean) / std inside the graph; traj: F 4 values",
+            },
+        }
+
+
 FRAME_GRAPHS: dict[str, Callable[..., FrameGraph]] = {
     "amdm": AMDMFrame.from_checkpoint,
     "aamdm_motion": AAMDMFrame.from_checkpoint,
     "policy": SteeredFrame.from_checkpoint,
+    "camdm": CAMDMPlan.from_checkpoint,
 }
 """Checkpoint kind -> ``build(checkpoint, steps=None, eta=1.0)``, the kinds with a fast path."""
 

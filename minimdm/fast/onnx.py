@@ -73,8 +73,7 @@ def _require_onnxruntime():
 def metadata(graph: FrameGraph, weights: str = "fp32", batch: int | None = None) -> dict[str, Any]:
     """The JSON metadata of ``graph``'s ONNX file (module docstring)."""
     b = "batch" if batch is None else int(batch)
-    inputs = [{"name": "state", "shape": [b, graph.state_dim]}]
-    inputs += [{"name": n, "shape": [b, w], "what": what} for n, w, what in graph.extra_inputs]
+    inputs = [_port(p, b) for p in graph.inputs()]
     inputs.append({
         "name": "noise",
         "shape": [b, graph.noise_dim],
@@ -86,11 +85,21 @@ def metadata(graph: FrameGraph, weights: str = "fp32", batch: int | None = None)
         "kind": graph.kind,
         "minimdm_version": __version__,
         "inputs": inputs,
-        "outputs": [{"name": "next_state", "shape": [b, graph.state_dim]}],
+        "outputs": [_port(graph.output(), b)],
         "weights": weights,
         **graph.describe(),
         **graph.settings,
     }
+
+
+def _port(p, batch: int | str) -> dict[str, Any]:
+    """An input or output in the metadata: name, shape with the batch, meaning, dtype."""
+    d: dict[str, Any] = {"name": p.name, "shape": [batch, *p.shape]}
+    if p.what:
+        d["what"] = p.what
+    if p.dtype != "float32":
+        d["dtype"] = p.dtype
+    return d
 
 
 WEIGHTS = ("fp32", "int8")
@@ -120,8 +129,9 @@ def export_onnx(
         raise InputError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     graph = graph.eval()
     args = graph.example_inputs(batch=1 if batch is None else int(batch))
-    names = ["state", *(n for n, _, _ in graph.extra_inputs), "noise"]
-    axes = {n: {0: "batch"} for n in [*names, "next_state"]} if batch is None else None
+    names = [*(p.name for p in graph.inputs()), "noise"]
+    output = graph.output().name
+    axes = {n: {0: "batch"} for n in [*names, output]} if batch is None else None
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         # The chain's input checks run once at trace time on the example inputs; the graph keeps
         # none of them (FastFrame checks its inputs before every call).
@@ -131,10 +141,17 @@ def export_onnx(
         # index_add (the residual hook) always warns; its indices are distinct features
         warnings.filterwarnings("ignore", message=".*duplicated values in 'index' field.*")
         f = Path(tmp) / "frame.onnx"
-        torch.onnx.export(
-            graph, args, str(f), dynamo=False, input_names=names, output_names=["next_state"],
-            dynamic_axes=axes, opset_version=OPSET, do_constant_folding=True,
-        )  # fmt: skip
+        # A transformer (CAMDM) in eval mode runs PyTorch's fused encoder-layer kernel, which has
+        # no ONNX form; without it the same layer traces into plain operations.
+        fused = torch.backends.mha.get_fastpath_enabled()
+        torch.backends.mha.set_fastpath_enabled(False)
+        try:
+            torch.onnx.export(
+                graph, args, str(f), dynamo=False, input_names=names, output_names=[output],
+                dynamic_axes=axes, opset_version=OPSET, do_constant_folding=True,
+            )  # fmt: skip
+        finally:
+            torch.backends.mha.set_fastpath_enabled(fused)
         import onnx
 
         model = onnx.load(str(f))
@@ -263,7 +280,10 @@ class FastFrame:
 
     The call takes ``state`` (B, S) and the ``extra`` inputs by name (a policy's ``task``), and
     either a ``generator`` (the noise is drawn from it as the eager chain draws it) or the
-    ``noise`` (B, N) itself. It returns a float32 tensor on the CPU.
+    ``noise`` (B, N) itself. It returns a float32 tensor on the CPU. A graph with other inputs
+    takes its first one in ``state``'s place: a CAMDM plan is ``future = fast(past, generator,
+    style=, trajectory=, gamma=)``, the drop-in ``planner`` of
+    :class:`~minimdm.camdm.controller.CAMDMController`.
     """
 
     def __init__(self, model: FrameGraph | bytes | str | os.PathLike, threads: int | None = 1):
@@ -280,14 +300,18 @@ class FastFrame:
         src = model if isinstance(model, bytes) else str(model)
         self.session = ort.InferenceSession(src, opts, providers=["CPUExecutionProvider"])
         self.metadata = _metadata_of(self.session, where)
-        self.inputs = [i["name"] for i in self.metadata["inputs"]]
-        self.widths: dict[str, int] = {i["name"]: i["shape"][1] for i in self.metadata["inputs"]}
-        self.noise_widths = tuple(self.metadata["inputs"][-1]["widths"])
+        ins = self.metadata["inputs"]
+        self.inputs = [i["name"] for i in ins]
+        self.shapes: dict[str, tuple[int, ...]] = {i["name"]: tuple(i["shape"][1:]) for i in ins}
+        """Each input's shape after the batch."""
+        self.dtypes: dict[str, str] = {i["name"]: i.get("dtype", "float32") for i in ins}
+        self.noise_widths = tuple(ins[-1]["widths"])
         self.kind = self.metadata["kind"]
 
     @property
     def state_dim(self) -> int:
-        return self.widths["state"]
+        """The last dimension of the first input (S for a frame, D for a CAMDM plan)."""
+        return self.shapes[self.inputs[0]][-1]
 
     def noise(self, batch: int, generator: torch.Generator | None = None) -> Tensor:
         """(batch, N) one frame's noise, drawn as the eager chain draws it."""
@@ -298,13 +322,17 @@ class FastFrame:
     def _array(self, name: str, x: Any, batch: int | None) -> np.ndarray:
         if not isinstance(x, (Tensor, np.ndarray)):
             raise InputTypeError(f"{name} must be a tensor, got {type(x).__name__}")
-        a = (x.detach().cpu().numpy() if isinstance(x, Tensor) else x).astype(
-            np.float32, copy=False
-        )
-        w = self.widths[name]
-        if a.ndim != 2 or a.shape[1] != w or (batch is not None and a.shape[0] != batch):
-            want = f"({batch if batch is not None else 'B'}, {w})"
+        a = x.detach().cpu().numpy() if isinstance(x, Tensor) else x
+        shape = self.shapes[name]
+        if a.shape[1:] != shape or a.ndim == 0 or (batch is not None and a.shape[0] != batch):
+            want = ", ".join(map(str, (batch if batch is not None else "B", *shape)))
+            want = f"({want},)" if not shape else f"({want})"
             raise InputError(f"{name} must have shape {want}, got {tuple(a.shape)}")
+        if self.dtypes[name] == "int64":
+            if not np.issubdtype(a.dtype, np.integer):
+                raise InputTypeError(f"{name} must hold integers (indices), got {a.dtype}")
+            return np.ascontiguousarray(a.astype(np.int64, copy=False))
+        a = a.astype(np.float32, copy=False)
         if not np.isfinite(a).all():
             raise InputError(f"{name} must be finite, but it holds NaN/Inf")
         return np.ascontiguousarray(a)
@@ -318,13 +346,14 @@ class FastFrame:
         **extra: Tensor,
     ) -> Tensor:
         """The next state (B, S) from ``state`` (B, S); see the class docstring."""
-        feed = {"state": self._array("state", state, None)}
-        B = feed["state"].shape[0]
+        first = self.inputs[0]
+        feed = {first: self._array(first, state, None)}
+        B = feed[first].shape[0]
         missing = [n for n in self.inputs[1:-1] if n not in extra]
         unknown = sorted(set(extra) - set(self.inputs[1:-1]))
         if missing or unknown:
             raise InputError(
-                f"a {self.kind} frame takes the inputs {self.inputs[1:-1]} besides state and "
+                f"a {self.kind} graph takes the inputs {self.inputs[1:-1]} besides {first} and "
                 f"noise; missing {missing}, unknown {unknown}"
             )
         for n in self.inputs[1:-1]:
