@@ -10,12 +10,14 @@
     minimdm camdm train configs/camdm.yaml               # -> checkpoints/camdm/ (chapter 9)
     minimdm camdm classifier configs/camdm_classifier.yaml  # -> checkpoints/camdm_classifier/
     minimdm export --onnx checkpoints/amdm --out amdm.onnx  # one frame as one ONNX graph
+    minimdm export --onnx checkpoints/camdm                 # a CAMDM planning call, the same
 
 ``train`` resumes from the output folder's training state when there is one, so an
 interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
 ``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
 ``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``export --onnx`` writes a frame
-of the model, every denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`).
+of the model, every denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`;
+for CAMDM a whole planning call: 8 steps with classifier-free guidance).
 ``data download`` fetches a corpus (resuming an interrupted download), checks it and unpacks it
 into the data folder (:func:`minimdm.motion.corpora.data_home`).
 """
@@ -308,12 +310,19 @@ def _cmd_export(args: argparse.Namespace) -> int:
     src = Path(args.onnx)
     default = Path(f"{(src.parent if src.suffix == '.safetensors' else src).name}.onnx")
     out = check_output_file("--out", args.out or default, (".onnx",))  # before any work
-    graph = frame_graph(load(args.onnx), steps=args.steps, eta=args.eta)
+    ckpt = load(args.onnx)
+    options = {}
+    if args.guide is not None:
+        if ckpt.kind != "camdm":
+            raise InputError(f"--guide: only a CAMDM checkpoint (kind camdm) guides, got kind "
+                             f"{ckpt.kind!r} ({args.onnx})")  # fmt: skip
+        options["guide"] = args.guide
+    graph = frame_graph(ckpt, steps=args.steps, eta=args.eta, **options)
     data = export_onnx(graph, out, weights=args.weights)
     print(json.dumps({
-        "out": str(out), "kind": graph.kind, "bytes": len(data), "state_dim": graph.state_dim,
-        "noise_dim": graph.noise_dim, "inputs": ["state", *(n for n, _, _ in graph.extra_inputs),
-                                                  "noise"],
+        "out": str(out), "kind": graph.kind, "bytes": len(data), "noise_dim": graph.noise_dim,
+        "inputs": {p.name: list(p.shape) for p in graph.inputs()},
+        "output": {graph.output().name: list(graph.output().shape)},
     }))  # fmt: skip
     return 0
 
@@ -440,11 +449,13 @@ def build_parser() -> argparse.ArgumentParser:
     x = add("export", help="write a checkpoint's frame as one ONNX graph, for game engines")
     x.add_argument(
         "--onnx", required=True, metavar="CHECKPOINT",
-        help="checkpoint folder, file or shipped name (kinds amdm, aamdm_motion, policy)",
+        help="checkpoint folder, file or shipped name (kinds amdm, aamdm_motion, policy, camdm)",
     )  # fmt: skip
     x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
     x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
     x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
+    x.add_argument("--guide", choices=("past", "style"), default=None,
+                   help="CAMDM: what CFG drops (default past: CFG-PM)")  # fmt: skip
     x.add_argument(
         "--weights", choices=("fp32", "int8"), default="fp32",
         help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",

@@ -479,7 +479,8 @@ FRAME_GRAPHS: dict[str, Callable[..., FrameGraph]] = {
     "policy": SteeredFrame.from_checkpoint,
     "camdm": CAMDMPlan.from_checkpoint,
 }
-"""Checkpoint kind -> ``build(checkpoint, steps=None, eta=1.0)``, the kinds with a fast path."""
+"""Checkpoint kind -> ``build(checkpoint, steps=None, eta=1.0, **options)``, the kinds with a
+fast path."""
 
 
 def load(checkpoint: Checkpoint | str | os.PathLike) -> Checkpoint:
@@ -496,9 +497,14 @@ def load(checkpoint: Checkpoint | str | os.PathLike) -> Checkpoint:
 
 
 def frame_graph(
-    checkpoint: Checkpoint | str | os.PathLike, steps: int | None = None, eta: float = 1.0
+    checkpoint: Checkpoint | str | os.PathLike,
+    steps: int | None = None,
+    eta: float = 1.0,
+    **options: Any,
 ) -> FrameGraph:
     """The :class:`FrameGraph` of a checkpoint (loaded, a path or a shipped name; CPU, eval).
+
+    ``options`` go to the kind's builder (``camdm``: ``guide``, 'past' or 'style').
 
     Raises:
         InputError: a kind without a fast path, naming it and the supported kinds.
@@ -510,6 +516,6 @@ def frame_graph(
             f"checkpoint kind {ckpt.kind!r} ({ckpt.paths.weights}) has no fast path; supported "
             f"kinds: {', '.join(FRAME_GRAPHS)}"
         )
-    graph = build(ckpt, steps=steps, eta=eta).eval()
+    graph = build(ckpt, steps=steps, eta=eta, **options).eval()
     graph.settings = _settings(ckpt)
     return graph

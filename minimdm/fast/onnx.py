@@ -170,7 +170,10 @@ def _int8_weights(model):
     """The graph with every linear layer's weights in blocks of 8-bit integers (MatMulNBits).
 
     The tracer writes a linear layer as ``Gemm(x, W, b, transB=1)``; ONNX Runtime's weight
-    quantizer takes ``MatMul`` nodes, so each becomes ``MatMul(x, W^T) + b`` first.
+    quantizer takes ``MatMul`` nodes, so each becomes ``MatMul(x, W^T) + b`` first. The exporter
+    shares a weight between denoising steps through ``Identity`` nodes (a transformer's layers
+    on (B, n, L) tokens: ``MatMul`` with a folded ``W^T``); the quantizer only takes a weight
+    that is an initializer, so every such alias is read through first.
     """
     import logging
 
@@ -178,6 +181,15 @@ def _int8_weights(model):
     from onnxruntime.quantization.matmul_nbits_quantizer import MatMulNBitsQuantizer
 
     g = model.graph
+    names = {i.name for i in g.initializer}
+    alias = {n.output[0]: n.input[0] for n in g.node if n.op_type == "Identity" and
+             n.input[0] in names}  # fmt: skip
+    alias = {k: v for k, v in alias.items() if k not in {o.name for o in g.output}}
+    for n in g.node:
+        for k, x in enumerate(n.input):
+            if x in alias:
+                n.input[k] = alias[x]
+    _keep_used(g, [n for n in g.node if n.op_type != "Identity" or n.output[0] not in alias])
     tensors = {i.name: numpy_helper.to_array(i) for i in g.initializer}
     tensors.update({
         n.output[0]: numpy_helper.to_array(n.attribute[0].t)
@@ -219,7 +231,8 @@ def _keep_used(g, nodes: list) -> None:
     nodes = [n for n in nodes if n.op_type != "Constant" or n.output[0] in used]
     del g.node[:]
     g.node.extend(nodes)
-    keep = [i for i in g.initializer if i.name in used]
+    seen: set[str] = set()  # the quantizer writes a shared weight once per node that reads it
+    keep = [i for i in g.initializer if i.name in used and not (i.name in seen or seen.add(i.name))]
     del g.initializer[:]
     g.initializer.extend(keep)
 
@@ -383,12 +396,15 @@ def fast_frame(
     eta: float = 1.0,
     threads: int | None = 1,
     weights: str = "fp32",
+    **options: Any,
 ) -> FastFrame:
     """The :class:`FastFrame` of a checkpoint (a loaded one, a path or a shipped name).
 
     ``steps`` and ``eta`` pick DDIM for A-MDM, as in :func:`minimdm.amdm.sampling.rollout`;
-    ``weights`` as in :func:`export_onnx`.
+    ``weights`` as in :func:`export_onnx`; ``options`` as in
+    :func:`~minimdm.fast.graphs.frame_graph` (CAMDM: ``guide``).
     """
     from .graphs import frame_graph
 
-    return FastFrame(export_onnx(frame_graph(checkpoint, steps, eta), weights=weights), threads)
+    graph = frame_graph(checkpoint, steps, eta, **options)
+    return FastFrame(export_onnx(graph, weights=weights), threads)
