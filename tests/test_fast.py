@@ -24,7 +24,7 @@ from minimdm.fast import (
     read_metadata,
 )
 from minimdm.fast.onnx import METADATA_KEY, metadata
-from minimdm.validate import InputError
+from minimdm.validate import InputError, InputTypeError
 
 ort = pytest.importorskip("onnxruntime")
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -240,3 +240,215 @@ def test_bad_files_and_paths(tmp_path, capsys):
     assert "--out must end in .onnx" in capsys.readouterr().err
     with pytest.raises(ValueError, match="noise must have shape"):
         NoiseTape(torch.zeros(3))
+
+
+# --------------------------------------------------------------------------------------------
+# CAMDM: a planning call (8 steps with CFG in the shipped model) as one graph
+
+
+def tiny_camdm(folder, seed: int = 0, styles=("big", "small", "sad")):
+    """A randomly initialised CAMDM checkpoint on disk (P = 4, F = 6, T = 4, a 4-joint body):
+    the graph's arithmetic does not depend on the weights' values."""
+    from minimdm.camdm.data import CAMDMLayout
+    from minimdm.camdm.model import CAMDM, CAMDMConfig
+    from minimdm.camdm.train import load_camdm
+    from minimdm.checkpoint import save_checkpoint
+    from minimdm.motion.features import Normalizer
+    from minimdm.motion.skeleton import Skeleton
+
+    names = ["Hips", "Spine", "LegL", "LegR"]
+    offsets = np.array([[0, 0, 0.9], [0, 0, 0.3], [0, 0.1, -0.85], [0, -0.1, -0.85]], float)
+    sk = Skeleton(names, [-1, 0, 0, 0], offsets, foot_joints=["LegL", "LegR"])
+    layout = CAMDMLayout(tuple(names), tuple(styles), 30.0, past=4, future=6)
+    D, W = layout.dim, layout.window
+    torch.manual_seed(seed)
+    model = CAMDM(CAMDMConfig(D, len(styles), 4, 6, latent=32, layers=2, heads=2, ff=64))
+    with torch.no_grad():
+        model.null_past.normal_()  # a learned null: not the zeros it starts from
+    g = torch.Generator().manual_seed(seed)
+    meta = {
+        "feature_layout": layout.to_dict(),
+        "skeleton": sk,
+        "normalizer": {
+            "window": Normalizer(0.1 * torch.randn(W * D, generator=g), 0.5 + torch.rand(W * D)),
+            "traj": Normalizer(0.1 * torch.randn(6 * 4, generator=g), 0.5 + torch.rand(6 * 4)),
+        },
+        "diffusion": {"schedule": "cosine", "T": 4, "predicts": "x0"},
+    }
+    save_checkpoint(folder, model.eval(), meta)
+    return load_camdm(folder)
+
+
+@pytest.fixture(scope="module")
+def camdm(tmp_path_factory):
+    """A tiny CAMDM checkpoint, its plan graphs (CFG on the past and on the style), exported."""
+    folder = tmp_path_factory.mktemp("camdm")
+    ckpt = tiny_camdm(folder)
+    graphs = {guide: frame_graph(ckpt, guide=guide) for guide in ("past", "style")}
+    return folder, ckpt, {k: (g, export_onnx(g)) for k, g in graphs.items()}
+
+
+def _plan_inputs(layout, batch: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    past = torch.randn(batch, layout.past, layout.dim, generator=g)
+    traj = torch.randn(batch, layout.future, 4, generator=g)
+    style = torch.randint(len(layout.styles), (batch,), generator=g)
+    return past, style, traj
+
+
+@pytest.mark.parametrize("guide", ["past", "style"])
+def test_camdm_plan_graph_matches_the_eager_plan_on_the_same_noise(camdm, guide):
+    _, ckpt, graphs = camdm
+    graph, data = graphs[guide]
+    ctl, fast = graph.controller, FastFrame(data)
+    assert [i for i in fast.inputs] == ["past", "style", "trajectory", "gamma", "noise"]
+    past, style, traj = _plan_inputs(ctl.layout, batch=4)
+    gamma = torch.tensor([0.7, 1.0, 2.0, 0.0])  # per sample, as the controller's
+    eager = ctl.plan(past, style, traj, torch.Generator().manual_seed(3), gamma, guide)
+    out = fast(past, torch.Generator().manual_seed(3), style=style, trajectory=traj, gamma=gamma)
+    assert out.shape == eager.shape == (4, 6, ctl.layout.dim)
+    assert (out - eager).abs().max().item() < TOL
+    # gamma is an input: another scale, another plan (row by row)
+    other = fast(past, torch.Generator().manual_seed(3), style=style, trajectory=traj,
+                 gamma=gamma + 0.5)  # fmt: skip
+    assert ((other - out).abs().amax(dim=(1, 2)) > 1e-3).all()
+    # the noise: one draw of x_T, then one per step but the last
+    assert graph.noise_widths == (6 * ctl.layout.dim,) * ckpt.schedule().T
+
+
+def test_camdm_plan_graph_at_gamma_one_is_the_conditional_model(camdm):
+    """The graph always runs both halves of eq. 5; at gamma = 1 its plan is the conditional
+    model's, which the eager chain computes alone (guided_x0's shortcut)."""
+    from minimdm.camdm.model import Conditions
+    from minimdm.camdm.sampling import sample_future
+
+    _, ckpt, graphs = camdm
+    graph, data = graphs["past"]
+    ctl = graph.controller
+    past, style, traj = _plan_inputs(ctl.layout, batch=3, seed=1)
+    out = FastFrame(data)(past, torch.Generator().manual_seed(0), style=style, trajectory=traj,
+                          gamma=torch.ones(3))  # fmt: skip
+    L = ctl.layout
+    mean, std = ctl.window_norm.mean.view(-1, L.dim), ctl.window_norm.std.view(-1, L.dim)
+    cond = Conditions((past - mean[:4]) / std[:4], style,
+                      ctl.traj_norm.normalize(traj.flatten(1)).view_as(traj))  # fmt: skip
+    x0 = sample_future(ctl.model, ctl.schedule, cond, torch.Generator().manual_seed(0))
+    assert (out - (x0 * std[4:] + mean[4:])).abs().max().item() < TOL
+
+
+def test_camdm_export_round_trip_keeps_its_metadata(camdm, tmp_path, capsys):
+    folder, ckpt, graphs = camdm
+    graph, _ = graphs["past"]
+    path = tmp_path / "camdm.onnx"
+    assert main(["export", "--onnx", str(folder), "--out", str(path)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["kind"] == "camdm" and printed["output"] == {"future": [6, 27]}
+    meta = read_metadata(path)
+    assert meta == json.loads(json.dumps(metadata(graph)))  # round trip, JSON-clean
+    assert meta["kind"] == "camdm" and meta["weights"] == "fp32"
+    assert meta["plan"] == {"P": 4, "F": 6, "D": 27, "T": 4, "guide": "past"}
+    assert meta["feature_layout"]["styles"] == ["big", "small", "sad"]
+    assert meta["skeleton"] == ckpt.skeleton and meta["fps"] == 30.0
+    assert meta["schedule"]["T"] == 4
+    assert meta["schedule"]["betas"] == pytest.approx(ckpt.schedule().betas.tolist())
+    for part in ("window", "traj"):
+        assert meta["normalizer"][part]["mean"] == pytest.approx(ckpt.normalizer[part]["mean"])
+    assert meta["feature_columns"]["rot"]["columns"] == [3, 27]
+    style = next(i for i in meta["inputs"] if i["name"] == "style")
+    assert style["dtype"] == "int64" and style["shape"] == ["batch"]
+
+    # a bare ONNX Runtime session, the noise drawn from the metadata's widths
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    past, style, traj = _plan_inputs(graph.controller.layout, batch=2, seed=2)
+    widths = meta["inputs"][-1]["widths"]
+    noise = NoiseTape.draw(widths, 2, torch.Generator().manual_seed(5))
+    feed = {"past": past.numpy(), "style": style.numpy(), "trajectory": traj.numpy(),
+            "gamma": np.full(2, 0.7, np.float32), "noise": noise.numpy()}  # fmt: skip
+    (out,) = sess.run(["future"], feed)
+    eager = graph.controller.plan(past, style, traj, torch.Generator().manual_seed(5), 0.7)
+    assert np.abs(out - eager.numpy()).max() < TOL
+
+    # --guide style, and --weights int8: a quarter of the weights' bytes, near the fp32 plan
+    small = tmp_path / "camdm_int8.onnx"
+    assert main(["export", "--onnx", str(folder), "--out", str(small), "--weights", "int8",
+                 "--guide", "style"]) == 0  # fmt: skip
+    meta8 = read_metadata(small)
+    assert meta8["weights"] == "int8" and meta8["plan"]["guide"] == "style"
+    assert main(["export", "--onnx", "amdm", "--guide", "past", "--out", "x.onnx"]) == 2
+    assert "--guide: only a CAMDM checkpoint" in capsys.readouterr().err
+
+
+def test_camdm_int8_plan_is_close(camdm):
+    graph, data = camdm[2]["past"]
+    small = export_onnx(graph, weights="int8")
+    assert len(small) < len(data)
+    past, style, traj = _plan_inputs(graph.controller.layout, batch=8)
+    kw = {"style": style, "trajectory": traj, "gamma": torch.full((8,), 0.7)}
+    a = FastFrame(data)(past, torch.Generator().manual_seed(2), **kw)
+    b = FastFrame(small)(past, torch.Generator().manual_seed(2), **kw)
+    rel = ((b - a).pow(2).mean().sqrt() / a.pow(2).mean().sqrt()).item()
+    assert 1e-5 < rel < 0.1
+
+
+def _commands(n: int, batch: int):
+    from minimdm.camdm.controller import Commands
+
+    walk = Commands.hold([1.0, 0.0], 0.0, 0, n // 2, batch)
+    turn = Commands.hold([0.5, 0.8], 1.2, 2, n - n // 2, batch)  # a style change: gamma 0.7
+    return walk.then(turn)
+
+
+def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm):
+    from minimdm.camdm.controller import CAMDMController, ControlConfig
+    from minimdm.camdm.data import world_frames
+    from minimdm.motion.data import Clip
+
+    _, ckpt, graphs = camdm
+    config = ControlConfig(M=3, K=3)  # F = 6 here: re-plan with part of the last plan left
+    eager = CAMDMController(ckpt, config)
+    fast = CAMDMController(ckpt, config, planner=FastFrame(graphs["past"][1]))
+    sk = eager.skeleton
+    quats = np.zeros((8, 4, 4))
+    quats[..., 0] = 1.0  # standing still, facing +x
+    root = np.stack([np.arange(8) * 0.03, np.zeros(8), np.full(8, 0.9)], -1)
+    start = world_frames(Clip("stand", 30.0, sk, root, quats))[None].repeat(2, 1, 1)
+    cmds = _commands(20, batch=2)
+    runs = []
+    for ctl in (eager, fast):
+        ctl.reset(start, style=0)
+        runs.append(ctl.run(cmds, 20, torch.Generator().manual_seed(4)))
+    a, b = runs
+    assert a.replans == b.replans and len(a.replans) >= 4
+    assert any((g != 1).any() for g in a.gammas) and any((g == 1).all() for g in a.gammas)
+    assert (a.frames - b.frames).abs().max().item() < TOL
+
+
+def test_controller_refuses_a_planner_of_another_guide_or_kind(camdm):
+    from minimdm.camdm.controller import CAMDMController, ControlConfig
+
+    _, ckpt, graphs = camdm
+    with pytest.raises(InputError, match="planner must be a CAMDM planning call"):
+        CAMDMController(ckpt, ControlConfig(guide="past"), planner=FastFrame(graphs["style"][1]))
+    ctl = CAMDMController(ckpt, planner=FastFrame(graphs["past"][1]))
+    past, style, traj = _plan_inputs(ctl.layout, batch=1)
+    with pytest.raises(InputError, match="the planner guides on 'past'"):
+        ctl.plan(past, style, traj, guide="style")
+
+
+def test_camdm_plan_bad_inputs_are_refused_by_name(camdm):
+    graph, data = camdm[2]["past"]
+    fast = FastFrame(data)
+    past, style, traj = _plan_inputs(graph.controller.layout, batch=2)
+    ok = {"style": style, "trajectory": traj, "gamma": torch.ones(2)}
+    with pytest.raises(InputError, match=r"missing \['gamma'\]"):
+        fast(past, style=style, trajectory=traj)
+    with pytest.raises(InputError, match=r"trajectory must have shape \(2, 6, 4\)"):
+        fast(past, **{**ok, "trajectory": traj[:, :5]})
+    with pytest.raises(InputError, match=r"gamma must have shape \(2,\)"):
+        fast(past, **{**ok, "gamma": torch.ones(2, 1)})
+    with pytest.raises(InputError, match=r"past must have shape \(B, 4, 27\)"):
+        fast(past[:, :3], **ok)
+    with pytest.raises(InputTypeError, match="style must hold integers"):
+        fast(past, **{**ok, "style": style.float()})
+    with pytest.raises(InputError, match="steps: a CAMDM checkpoint runs its own 4 steps"):
+        frame_graph(camdm[1], steps=2)
