@@ -12,15 +12,20 @@ denoising step, three ways on the same inputs:
   (``int8_rel_rms``: its frame's RMS difference from fp32's over the frame's RMS).
 
 Models: the book's A-MDM (6 x 384, T = 20, DDPM, and DDIM over 5 steps), AAMDM (3 GAN + 2
-polishing steps, then the decoder), the joystick policy steering A-MDM, and a paper-size A-MDM
-(10 x 1024, T = 40) with random weights (speed does not depend on the weights' values). It also
+polishing steps, then the decoder), the joystick policy steering A-MDM, a paper-size A-MDM
+(10 x 1024, T = 40) with random weights (speed does not depend on the weights' values), and
+CAMDM, whose unit is not a frame but a planning call (:class:`minimdm.fast.CAMDMPlan`: F = 45
+future frames, 8 denoising steps with classifier-free guidance at gamma = 0.7, both model calls
+in one forward pass of 2 B rows; the controller applies M = 15 planned frames per call, so a
+character runs at ``M / plan time`` frames per second when planning dominates). It also
 records the engine choice at batch 1 on one thread (TorchScript, ONNX Runtime, and with
 ``--compile`` torch.compile), the load of the machine (``uptime``), the memory bandwidth and
 the goals with the arithmetic that bounds them. Times are medians of ``--repeats`` blocks, the
 engines interleaved, as the machine is shared.
 
-    python benchmarks/realtime.py                # ~6 min on the 2-core build machine
-    python benchmarks/realtime.py --quick        # the book A-MDM only, fewer repeats
+    python benchmarks/realtime.py                # ~8 min on the 2-core build machine
+    python benchmarks/realtime.py --quick        # A-MDM, and CAMDM at batch 1 only; 3 repeats
+    python benchmarks/realtime.py --models camdm # some models only
 
 Prints JSON lines and appends them to ``benchmarks/results/realtime.jsonl``.
 """
@@ -40,12 +45,18 @@ from common import ROOT, emit, hardware
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
 from minimdm.control.core import ControlModel
 from minimdm.diffusion import NoiseSchedule
-from minimdm.fast import AMDMFrame, FastFrame, export_onnx, frame_graph
+from minimdm.fast import AMDMFrame, CAMDMPlan, FastFrame, export_onnx, frame_graph
 from minimdm.utils import num_threads
 
 RESULTS = ROOT / "benchmarks" / "results" / "realtime.jsonl"
-GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0}
-"""Issue 16's goals, ms per frame on one core at batch 1."""
+GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0, "camdm": 15.0}
+"""Issue 16's goals, ms per frame (CAMDM: per planning call) on one core at batch 1."""
+CAMDM_M = 15
+"""Frames the CAMDM controller applies per planning call (ControlConfig.M)."""
+CAMDM_GAMMA = 0.7
+"""The CFG scale timed: not 1, so that eager runs both halves of eq. 5 as the graph does."""
+MODELS = ("amdm", "amdm_ddim5", "aamdm", "rl_joystick", "paper_10x1024", "camdm")
+QUICK = ("amdm", "amdm_ddim5", "camdm")
 
 
 def load() -> dict:
@@ -106,13 +117,43 @@ def paper_graph() -> AMDMFrame:
 
 def inputs(graph, batch: int):
     g = torch.Generator().manual_seed(0)
+    if isinstance(graph, CAMDMPlan):  # past near the data's mean, a style, a trajectory, gamma
+        c = graph.controller
+        L = c.layout
+        mean = c.window_norm.mean.view(-1, L.dim)[: L.past]
+        past = mean + 0.1 * torch.randn(batch, L.past, L.dim, generator=g)
+        extra = {"style": torch.randint(len(L.styles), (batch,), generator=g),
+                 "trajectory": torch.randn(batch, L.future, 4, generator=g),
+                 "gamma": torch.full((batch,), CAMDM_GAMMA)}  # fmt: skip
+        return past, extra
     state = 0.5 * torch.randn(batch, graph.state_dim, generator=g)
     extra = {n: torch.randn(batch, w, generator=g) for n, w, _ in graph.extra_inputs}
     return state, extra
 
 
+def plan_flops(graph) -> int:
+    """FLOPs of one CAMDM planning call at batch 1 (matrix products, attention included), counted
+    on the eager call with the fused encoder kernel off (the counter sees plain operations)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    past, extra = inputs(graph, 1)
+    fused = torch.backends.mha.get_fastpath_enabled()
+    torch.backends.mha.set_fastpath_enabled(False)
+    try:
+        with torch.no_grad(), FlopCounterMode(display=False) as counter:
+            graph.frame(past, torch.Generator().manual_seed(0), *extra.values())
+    finally:
+        torch.backends.mha.set_fastpath_enabled(fused)
+    return counter.get_total_flops()
+
+
 def frame_arithmetic(graph) -> dict:
     """A-MDM at batch 1: every denoising step reads every weight of the denoiser once."""
+    if isinstance(graph, CAMDMPlan):  # every step: one call of the transformer on 2 B rows
+        params = sum(p.numel() for p in graph.model.parameters())
+        return {"params": params, "network_calls_per_plan": graph.controller.schedule.T,
+                "rows_per_call": "2 B (both halves of CFG)", "gamma": CAMDM_GAMMA,
+                "GFLOP_per_plan_batch1": round(plan_flops(graph) / 1e9, 3)}  # fmt: skip
     cm = getattr(graph, "cm", None)
     if cm is None:
         return {}
@@ -152,7 +193,15 @@ def engines(graph, repeats: int, compile_too: bool) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--repeats", type=int, default=7, help="timed blocks per engine (median)")
-    p.add_argument("--quick", action="store_true", help="the book A-MDM only, 3 repeats")
+    p.add_argument("--quick", action="store_true",
+                   help="A-MDM, and CAMDM at batch 1 only; 3 repeats")  # fmt: skip
+    p.add_argument(
+        "--models",
+        nargs="+",
+        choices=MODELS,
+        default=None,
+        help="the models to time (default: all; --quick: amdm amdm_ddim5 camdm)",
+    )
     p.add_argument("--compile", action="store_true", help="also time torch.compile (slow)")
     p.add_argument("--out", default=str(RESULTS), help="append the JSON lines here")
     args = p.parse_args()
@@ -169,24 +218,31 @@ def main() -> None:
                                      "256MB": bandwidth(256)}}, out)  # fmt: skip
 
     print("building graphs ...", flush=True)
-    graphs = {"amdm": frame_graph("amdm"), "amdm_ddim5": frame_graph("amdm", steps=5)}
-    if not args.quick:
-        graphs.update({"aamdm": frame_graph("aamdm"), "rl_joystick": frame_graph("rl_joystick"),
-                       "paper_10x1024": paper_graph()})  # fmt: skip
+    build = {
+        "amdm": lambda: frame_graph("amdm"),
+        "amdm_ddim5": lambda: frame_graph("amdm", steps=5),
+        "aamdm": lambda: frame_graph("aamdm"),
+        "rl_joystick": lambda: frame_graph("rl_joystick"),
+        "paper_10x1024": paper_graph,
+        "camdm": lambda: frame_graph("camdm"),
+    }
+    models = args.models or (QUICK if args.quick else MODELS)
+    graphs = {k: build[k]() for k in MODELS if k in models}
     t0 = time.perf_counter()
     onnx = {k: (export_onnx(g), export_onnx(g, weights="int8")) for k, g in graphs.items()}
     emit({**run, "record": "export", "seconds": round(time.perf_counter() - t0, 1),
           "bytes": {k: [len(a), len(b)] for k, (a, b) in onnx.items()}}, out)  # fmt: skip
 
-    emit({**run, "record": "engines", "model": "amdm", "batch": 1, "threads": 1,
-          **engines(graphs["amdm"], repeats, args.compile), "load": load()}, out)  # fmt: skip
+    if "amdm" in graphs:
+        emit({**run, "record": "engines", "model": "amdm", "batch": 1, "threads": 1,
+              **engines(graphs["amdm"], repeats, args.compile), "load": load()}, out)  # fmt: skip
 
     results = {}
     for name, graph in graphs.items():
         for threads in sorted({1, all_threads}):
             fp32 = FastFrame(onnx[name][0], threads=threads)
             int8 = FastFrame(onnx[name][1], threads=threads)
-            for batch in (1, 64):
+            for batch in (1,) if args.quick and name == "camdm" else (1, 64):
                 state, extra = inputs(graph, batch)
                 gen = torch.Generator()
                 # accuracy on the same noise: fp32 against eager, int8 against fp32
@@ -207,12 +263,14 @@ def main() -> None:
                         "fast": lambda s=state, e=extra, f=fp32, g=gen: f(s, g, **e),
                         "fast_int8": lambda s=state, e=extra, f=int8, g=gen: f(s, g, **e),
                     }, repeats)  # fmt: skip
+                # frames a call makes for each character: one, or the M a plan is applied for
+                per_call = CAMDM_M if name == "camdm" else 1
                 rec = {**run, "record": "speed", "model": name, "batch": batch,
                        "threads": threads, **frame_arithmetic(graph),
-                       "ms_per_frame": ms,
+                       ("ms_per_plan" if name == "camdm" else "ms_per_frame"): ms,
                        "speedup": round(ms["eager"] / ms["fast"], 2),
                        "speedup_int8": round(ms["eager"] / ms["fast_int8"], 2),
-                       "character_frames_per_s_fast": round(batch / ms["fast"] * 1e3, 1),
+                       "character_frames_per_s_fast": round(batch * per_call / ms["fast"] * 1e3, 1),
                        "max_abs_diff": float(f"{diff:.2g}"), "int8_rel_rms": round(rel, 4),
                        "weights": "random" if name.startswith("paper") else "shipped",
                        "load": load()}  # fmt: skip
@@ -223,6 +281,21 @@ def main() -> None:
         if (name, 1, 1) not in results:
             continue
         r = results[name, 1, 1]
+        if name == "camdm":
+            ms = r["ms_per_plan"]
+            best = min(ms["fast"], ms["fast_int8"])
+            emit({**run, "record": "goal", "model": name, "goal_ms": goal, "unit": "planning call",
+                  "batch": 1, "threads": 1, "eager_ms": ms["eager"], "fast_ms": ms["fast"],
+                  "fast_int8_ms": ms["fast_int8"], "met_fp32": ms["fast"] <= goal,
+                  "met_int8": ms["fast_int8"] <= goal, "met": best <= goal,
+                  "speedup": r["speedup"], "speedup_int8": r["speedup_int8"], "M": CAMDM_M,
+                  "GFLOPs_fp32": round(r["GFLOP_per_plan_batch1"] / ms["fast"] * 1e3, 1),
+                  "character_fps": {k: round(CAMDM_M / v * 1e3, 1) for k, v in ms.items()},
+                  "character_fps_formula": "M / plan_ms * 1000 with M = 15 frames applied per "
+                  "planning call: planning dominates (applying a planned frame is a copy), and "
+                  "a re-plan at a changed input comes sooner, so this is an upper bound",
+                  "load": load()}, out)  # fmt: skip
+            continue
         ms = r["ms_per_frame"]
         best = min(ms["fast"], ms["fast_int8"])
         mb = r["fp32_weight_MB_per_frame"]

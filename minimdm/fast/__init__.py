@@ -1,4 +1,4 @@
-"""The fast path: one frame, every denoising step, as one ONNX graph (issue 16).
+"""The fast path: one frame (or CAMDM planning call), every denoising step, as one ONNX graph.
 
 The eager samplers run the library's one reverse chain (:mod:`minimdm.diffusion`) step by step
 in Python; at batch 1 on a CPU, per-operation overhead sets their speed. The fast path does not
@@ -6,26 +6,43 @@ write a second sampler. It traces the model's own per-frame step, with its noise
 (:class:`~minimdm.diffusion.NoiseTape`), into one graph, and runs that graph in ONNX Runtime:
 
 * :mod:`~minimdm.fast.graphs`: :class:`FrameGraph`, the per-frame step of each checkpoint kind
-  (:data:`FRAME_GRAPHS`: ``amdm`` with DDPM or DDIM, ``aamdm_motion``, ``policy`` on A-MDM);
+  (:data:`FRAME_GRAPHS`: ``amdm`` with DDPM or DDIM, ``aamdm_motion``, ``policy`` on A-MDM,
+  and ``camdm``: :class:`CAMDMPlan`, a whole planning call, 8 steps with classifier-free
+  guidance, the CFG scale an input);
 * :mod:`~minimdm.fast.onnx`: :func:`export_onnx` (the graph, its weights and its metadata in
   one file, ``minimdm export --onnx``), :func:`read_metadata`, and :class:`FastFrame`, the
   drop-in for the eager step: pass it as ``sampler=`` to
-  :func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`.
+  :func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`, or (CAMDM)
+  as ``planner=`` to :class:`minimdm.camdm.controller.CAMDMController`.
 
     fast = fast_frame("amdm")                       # the shipped book model
     x1 = fast(x0, torch.Generator().manual_seed(0))  # the eager next_frame's x1, within 1e-4
 
+    plan = fast_frame("camdm")                      # one planning call: (B, P, D) -> (B, F, D)
+    ctl = CAMDMController("checkpoints/camdm", planner=plan)  # the eager controller's frames
+
 ``benchmarks/realtime.py`` measures eager against fast.
 """
 
-from .graphs import FRAME_GRAPHS, AAMDMFrame, AMDMFrame, FrameGraph, SteeredFrame, frame_graph
+from .graphs import (
+    FRAME_GRAPHS,
+    AAMDMFrame,
+    AMDMFrame,
+    CAMDMPlan,
+    FrameGraph,
+    Port,
+    SteeredFrame,
+    frame_graph,
+)
 from .onnx import FORMAT, METADATA_KEY, FastFrame, export_onnx, fast_frame, read_metadata
 
 __all__ = [
+    "Port",
     "FrameGraph",
     "AMDMFrame",
     "AAMDMFrame",
     "SteeredFrame",
+    "CAMDMPlan",
     "FRAME_GRAPHS",
     "frame_graph",
     "FORMAT",
