@@ -6,7 +6,10 @@ over denoising levels unrolls into one graph, the level-dependent schedule value
 embeddings become constants, and the batch stays a free dimension. The file carries the weights
 and, under the metadata key ``minimdm``, one JSON object (:func:`read_metadata`) with what a
 game engine needs: the inputs and their meaning, the noise layout, the sampler and its
-schedule, the normalizer, the feature layout, the skeleton and the frame rate.
+schedule, the normalizer, the feature layout, the skeleton and the frame rate. A CAMDM planning
+call (:class:`~minimdm.fast.graphs.CAMDMPlan`) is exported the same way: its inputs are the past
+frames, the style index (int64), the trajectory, the CFG scale and the noise, its output the
+future frames; its metadata adds P, F, T, the guide and the styles (in ``feature_layout``).
 
 :class:`FastFrame` runs that graph in an ONNX Runtime inference session. It is a drop-in for the
 eager per-frame step, ``frame = fast(state, generator)``: it draws the frame's noise from the
