@@ -156,7 +156,12 @@ def test_aamdm_checkpoints_clamp_covers_their_training_data():
     from minimdm.studies.squ9_acceleration import Squ9Study, Squ9StudyConfig
 
     ck = load_checkpoint(ROOT / "checkpoints" / "aamdm")
-    assert clamp_share(ck.model.transition.config.clip_x0, checkpoint_training_xz(ck)) == 0.0
+    lo, hi = (torch.tensor(b) for b in ck.model.transition.config.clip_x0)
+    xz = checkpoint_training_xz(ck)
+    # The box is the training latents' exact range. Re-encoding them on another CPU rounds
+    # differently (seen: 3e-6 beyond the box), so cover them up to float rounding, not bit for bit.
+    assert clamp_share([(lo - 1e-5).tolist(), (hi + 1e-5).tolist()], xz) == 0.0
+    assert clamp_share([(lo + 1e-2).tolist(), (hi - 1e-2).tolist()], xz) > 0.0  # and it is tight
     ck = load_checkpoint(ROOT / "checkpoints" / "aamdm_squ9" / "aamdm")
     cfg = dict(ck.metadata["study_config"])
     cfg["gan"], cfg["polish"] = GANConfig(**cfg["gan"]), PolishConfig(**cfg["polish"])
