@@ -283,6 +283,22 @@ def test_training_is_deterministic(tiny, tmp_path):
         assert torch.equal(v, twice.model.state_dict()[k])
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_training_on_a_gpu_follows_the_cpu_run(tiny, tmp_path):
+    """A CPU generator feeds the GPU run the CPU run's draws: the same losses up to kernels."""
+    import json
+
+    _, data = tiny
+    runs = {}
+    for device in ("cpu", "cuda"):
+        config = tiny_config(total_steps=20, device=device)
+        ckpt = train_camdm(config, tmp_path / device, data=data, progress=False)
+        assert next(ckpt.model.parameters()).device.type == device
+        lines = (tmp_path / device / "log.jsonl").read_text().splitlines()
+        runs[device] = [json.loads(ln)["loss"] for ln in lines if "loss" in json.loads(ln)]
+    assert runs["cuda"] == pytest.approx(runs["cpu"], rel=1e-3)
+
+
 def test_training_resumes_from_its_last_checkpoint(tiny, tmp_path):
     import json
 

@@ -78,7 +78,14 @@ def gaussian(
     """
     if isinstance(generator, NoiseTape):
         return generator.take(tuple(shape), dtype)
-    return torch.randn(shape, generator=generator, device=device, dtype=dtype)
+    at = _draw_device(generator, device)
+    return torch.randn(shape, generator=generator, device=at, dtype=dtype).to(device)
+
+
+def _draw_device(generator: torch.Generator | None, device) -> torch.device | str | None:
+    """Where a draw happens: on the generator's own device. A seeded CPU generator then feeds a
+    GPU run with the same numbers as a CPU run (the draws are moved, not re-seeded)."""
+    return generator.device if isinstance(generator, torch.Generator) else device
 
 
 def check_finite(name: str, x: Tensor) -> None:
@@ -211,7 +218,7 @@ def q_sample(
     A-MDM eqs. 1-2. ``t = -1`` returns ``x0`` unchanged.
     """
     if noise is None:
-        noise = torch.randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
+        noise = gaussian(x0.shape, generator, x0.device, x0.dtype)
     return (
         _index(schedule.sqrt_alphas_cumprod, t, x0, 1.0) * x0
         + _index(schedule.sqrt_one_minus_alphas_cumprod, t, x0, 0.0) * noise
@@ -329,8 +336,9 @@ def diffusion_loss(
     per-sample loss.
     """
     B = x0.shape[0]
-    t = torch.randint(0, schedule.T, (B,), generator=generator, device=x0.device)
-    noise = torch.randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
+    at = _draw_device(generator, x0.device)
+    t = torch.randint(0, schedule.T, (B,), generator=generator, device=at).to(x0.device)
+    noise = gaussian(x0.shape, generator, x0.device, x0.dtype)
     x_t = q_sample(schedule, x0, t, noise)
     out = model(x_t, t, cond)
     if predicts == "eps":
