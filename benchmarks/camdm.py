@@ -61,6 +61,7 @@ from common import ROOT, emit, hardware
 import minimdm
 from minimdm import control as C
 from minimdm.amdm import evaluation
+from minimdm.camdm import trajectory
 from minimdm.camdm.classifier import (
     classifier_features,
     frechet_distance,
@@ -70,7 +71,6 @@ from minimdm.camdm.classifier import (
 from minimdm.camdm.controller import CAMDMController, Commands, ControlConfig
 from minimdm.camdm.data import headings, to_canonical, world_frames
 from minimdm.camdm.train import load_camdm, load_clips
-from minimdm.camdm.trajectory import halflife_to_damping
 from minimdm.motion import metrics
 from minimdm.motion.features import StartPose, decode_clip
 from minimdm.motion.skeleton import wrap_angle
@@ -99,21 +99,11 @@ def preset_commands(n: int, frames: int, seed: int = 0, speed=(0.5, 2.5), turn=(
 
 
 def spring_path(heading: torch.Tensor, speed: torch.Tensor, halflife: float = 0.3) -> torch.Tensor:
-    """The root path (B, N + 1, 2) that the commands draw: the ground velocity follows the
-    commanded one through a critically damped spring (half-life ``halflife`` s, the controller's
-    user trajectory), integrated frame by frame from rest-at-command at the origin."""
-    target = speed[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], -1)
-    y = halflife_to_damping(halflife) / 2
-    dt = 1 / FPS
-    v, a = target[:, 0].clone(), torch.zeros_like(target[:, 0])
-    xy = [torch.zeros_like(v)]
-    for f in range(target.shape[1]):
-        j0, j1 = v - target[:, f], a + (v - target[:, f]) * y
-        e = math.exp(-y * dt)
-        v = e * (j0 + j1 * dt) + target[:, f]
-        a = e * (a - j1 * y * dt)
-        xy.append(xy[-1] + v * dt)
-    return torch.stack(xy, 1)
+    """The root path (B, N + 1, 2) that the commands draw through the controller's velocity
+    spring (half-life ``halflife`` s), from the origin (:func:`minimdm.camdm.trajectory.
+    spring_path`)."""
+    goal = speed[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], -1)
+    return trajectory.spring_path(goal, halflife, 1 / FPS)
 
 
 # --------------------------------------------------------------------------- measurements

@@ -22,7 +22,12 @@ from minimdm.camdm.data import CAMDMLayout, to_canonical, to_world, trajectory_o
 from minimdm.camdm.model import CAMDM, CAMDMConfig, Conditions
 from minimdm.camdm.sampling import GuidedStep, guided_x0, sample_future
 from minimdm.camdm.train import CAMDMTrainConfig, data_from_clips, load_camdm, train_camdm
-from minimdm.camdm.trajectory import extend_trajectory, spring_headings, spring_positions
+from minimdm.camdm.trajectory import (
+    extend_trajectory,
+    spring_headings,
+    spring_path,
+    spring_positions,
+)
 from minimdm.checkpoint import CheckpointMismatchError
 from minimdm.cli import main
 from minimdm.diffusion import DDPMStep, NoiseSchedule, reverse_chain
@@ -244,6 +249,29 @@ def test_springs_reach_the_joystick():
     h = spring_headings(torch.tensor([math.radians(170)]), torch.zeros(1),
                         torch.tensor([math.radians(-170)]), 0.3, t)  # fmt: skip
     assert h[0].diff().min() >= 0 and abs(h[0, -1].item() - math.radians(190)) < 1e-3
+
+
+vel = st.tuples(st.floats(-3, 3), st.floats(-3, 3))
+
+
+@settings(max_examples=25, deadline=None)
+@given(g0=vel, g1=vel, halflife=st.floats(0.1, 1.0))
+def test_the_stepped_spring_path_moves_as_the_closed_form_spring(g0, g1, halflife):
+    """A joystick that holds g0 for a frame, then g1: the path's velocity after the change is
+    the closed-form spring's (the derivative of spring_positions from g0 towards g1)."""
+    dt, N = 1 / 30, 60
+    goal = torch.tensor([g0], dtype=torch.float64)[:, None].repeat(1, N, 1)
+    goal[:, 1:] = torch.tensor(g1, dtype=torch.float64)
+    path = spring_path(goal, halflife, dt)
+    assert path.shape == (1, N + 1, 2) and torch.equal(path[0, 0], torch.zeros(2).double())
+    v = torch.diff(path[0], dim=0) / dt  # (N, 2): the velocity at the end of each step
+
+    def x(t):
+        return spring_positions(torch.zeros(1, 2).double(), goal[:, 0], goal[:, 1], halflife, t)
+
+    t, h = torch.arange(1, N, dtype=torch.float64) * dt, 1e-6
+    torch.testing.assert_close(v[0], goal[0, 0])
+    torch.testing.assert_close(v[1:], ((x(t + h) - x(t - h)) / (2 * h))[0], atol=1e-6, rtol=0)
 
 
 # ------------------------------------------------------------------------------ representation

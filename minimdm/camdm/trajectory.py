@@ -3,6 +3,7 @@
 * :func:`spring_positions` and :func:`spring_headings`: the user's synthetic future trajectory,
   a critically damped spring from the character's current velocity (and turning rate) towards
   the joystick's (Büttner and Clavet 2015; Holden's "spring-roll-call" closed forms);
+  :func:`spring_path` steps the same spring frame by frame under a goal that changes;
 * :func:`blend_trajectories`: the model's predicted trajectory blended with the user's, more of
   the user's the further ahead (Holden et al. 2017);
 * :func:`extend_trajectory`: heuristic future trajectory extension (HFTE): when M frames of a
@@ -25,6 +26,7 @@ from minimdm.motion.skeleton import wrap_angle
 __all__ = [
     "halflife_to_damping",
     "spring_positions",
+    "spring_path",
     "spring_headings",
     "blend_trajectories",
     "extend_trajectory",
@@ -51,6 +53,27 @@ def spring_positions(
         e * (-j1 / y**2 + (-j0 - j1 * t) / y) + j1 / y**2 + j0 / y
         + goal_velocity[:, None] * t + xy[:, None]
     )  # fmt: skip
+
+
+def spring_path(goal_velocity: Tensor, halflife: float, dt: float) -> Tensor:
+    """The ground path ``(B, N + 1, 2)`` that a joystick draws over N frames: the velocity follows
+    ``goal_velocity (B, N, 2)``, which may change every frame, through the critically damped
+    spring of :func:`spring_positions`, stepped ``dt`` seconds at a time from the origin, moving
+    at the first goal. Each step is the spring's exact solution over ``dt`` (its velocity and
+    acceleration carry over, so a goal that changes mid-turn stays smooth); positions add up
+    the velocity at the end of each step. Benchmarks turn preset commands into the root path
+    that inpainting follows and CAMDM's user trajectory would draw."""
+    y = halflife_to_damping(halflife) / 2
+    e = math.exp(-y * dt)
+    v, a = goal_velocity[:, 0].clone(), torch.zeros_like(goal_velocity[:, 0])
+    xy = [torch.zeros_like(v)]
+    for f in range(goal_velocity.shape[1]):
+        j0 = v - goal_velocity[:, f]
+        j1 = a + j0 * y
+        v = e * (j0 + j1 * dt) + goal_velocity[:, f]
+        a = e * (a - j1 * y * dt)
+        xy.append(xy[-1] + v * dt)
+    return torch.stack(xy, 1)
 
 
 def spring_headings(
