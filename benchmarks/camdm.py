@@ -32,7 +32,7 @@ with :func:`minimdm.studies.seeds.summarize_seeds`. Not a test.
   model: joint acceleration at the frames where a new plan starts, against the rest.
 * ``ablations`` (Tables 3 and 5): retrains the model as ``--ablation-steps`` steps of
   ``configs/camdm.yaml`` under each variant (the shipped design, one token for all conditions,
-  an MLP backbone, T in {2, 4, 16}), one training seed each, and runs ``control`` on a quarter
+  an MLP backbone, T in {2, 4, 16}), and runs ``control`` on a quarter
   of its commands with each; ``--only ablations`` takes about 1 h on the 2 cores (``--device
   cuda`` trains them on a GPU; the controller still runs on the CPU). ``--ablation-seed`` sets
   the training seed. The results file holds training seeds 0, 1 and 2 of every variant, trained
