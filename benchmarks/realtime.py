@@ -17,7 +17,10 @@ polishing steps, then the decoder), the joystick policy steering A-MDM, a paper-
 CAMDM, whose unit is not a frame but a planning call (:class:`minimdm.fast.CAMDMPlan`: F = 45
 future frames, 8 denoising steps with classifier-free guidance at gamma = 0.7, both model calls
 in one forward pass of 2 B rows; the controller applies M = 15 planned frames per call, so a
-character runs at ``M / plan time`` frames per second when planning dominates). It also
+character runs at ``M / plan time`` frames per second when planning dominates), and
+``camdm_gamma1``, the plan at gamma = 1 (the conditional model alone, ``guide="none"``: the
+graph that :class:`minimdm.fast.CAMDMPlanner` runs for every plan but those in the second after
+a style change). It also
 records the engine choice at batch 1 on one thread (TorchScript, ONNX Runtime, and with
 ``--compile`` torch.compile), the load of the machine (``uptime``), the memory bandwidth and
 the goals with the arithmetic that bounds them. Times are medians of ``--repeats`` blocks, the
@@ -49,14 +52,14 @@ from minimdm.fast import AMDMFrame, CAMDMPlan, FastFrame, export_onnx, frame_gra
 from minimdm.utils import num_threads
 
 RESULTS = ROOT / "benchmarks" / "results" / "realtime.jsonl"
-GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0, "camdm": 15.0}
+GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0, "camdm": 15.0, "camdm_gamma1": 15.0}
 """Issue 16's goals, ms per frame (CAMDM: per planning call) on one core at batch 1."""
 CAMDM_M = 15
 """Frames the CAMDM controller applies per planning call (ControlConfig.M)."""
 CAMDM_GAMMA = 0.7
 """The CFG scale timed: not 1, so that eager runs both halves of eq. 5 as the graph does."""
-MODELS = ("amdm", "amdm_ddim5", "aamdm", "rl_joystick", "paper_10x1024", "camdm")
-QUICK = ("amdm", "amdm_ddim5", "camdm")
+MODELS = ("amdm", "amdm_ddim5", "aamdm", "rl_joystick", "paper_10x1024", "camdm", "camdm_gamma1")
+QUICK = ("amdm", "amdm_ddim5", "camdm", "camdm_gamma1")
 
 
 def load() -> dict:
@@ -123,8 +126,9 @@ def inputs(graph, batch: int):
         mean = c.window_norm.mean.view(-1, L.dim)[: L.past]
         past = mean + 0.1 * torch.randn(batch, L.past, L.dim, generator=g)
         extra = {"style": torch.randint(len(L.styles), (batch,), generator=g),
-                 "trajectory": torch.randn(batch, L.future, 4, generator=g),
-                 "gamma": torch.full((batch,), CAMDM_GAMMA)}  # fmt: skip
+                 "trajectory": torch.randn(batch, L.future, 4, generator=g)}  # fmt: skip
+        if graph.guide != "none":
+            extra["gamma"] = torch.full((batch,), CAMDM_GAMMA)
         return past, extra
     state = 0.5 * torch.randn(batch, graph.state_dim, generator=g)
     extra = {n: torch.randn(batch, w, generator=g) for n, w, _ in graph.extra_inputs}
@@ -149,10 +153,12 @@ def plan_flops(graph) -> int:
 
 def frame_arithmetic(graph) -> dict:
     """A-MDM at batch 1: every denoising step reads every weight of the denoiser once."""
-    if isinstance(graph, CAMDMPlan):  # every step: one call of the transformer on 2 B rows
+    if isinstance(graph, CAMDMPlan):  # every step: one call of the transformer on 2 B or B rows
         params = sum(p.numel() for p in graph.model.parameters())
+        cfg = graph.guide != "none"
         return {"params": params, "network_calls_per_plan": graph.controller.schedule.T,
-                "rows_per_call": "2 B (both halves of CFG)", "gamma": CAMDM_GAMMA,
+                "rows_per_call": "2 B (both halves of CFG)" if cfg else "B (conditional)",
+                "gamma": CAMDM_GAMMA if cfg else 1.0,
                 "GFLOP_per_plan_batch1": round(plan_flops(graph) / 1e9, 3)}  # fmt: skip
     cm = getattr(graph, "cm", None)
     if cm is None:
@@ -225,6 +231,7 @@ def main() -> None:
         "rl_joystick": lambda: frame_graph("rl_joystick"),
         "paper_10x1024": paper_graph,
         "camdm": lambda: frame_graph("camdm"),
+        "camdm_gamma1": lambda: frame_graph("camdm", guide="none"),
     }
     models = args.models or (QUICK if args.quick else MODELS)
     graphs = {k: build[k]() for k in MODELS if k in models}
@@ -242,7 +249,7 @@ def main() -> None:
         for threads in sorted({1, all_threads}):
             fp32 = FastFrame(onnx[name][0], threads=threads)
             int8 = FastFrame(onnx[name][1], threads=threads)
-            for batch in (1,) if args.quick and name == "camdm" else (1, 64):
+            for batch in (1,) if args.quick and name.startswith("camdm") else (1, 64):
                 state, extra = inputs(graph, batch)
                 gen = torch.Generator()
                 # accuracy on the same noise: fp32 against eager, int8 against fp32
@@ -264,10 +271,11 @@ def main() -> None:
                         "fast_int8": lambda s=state, e=extra, f=int8, g=gen: f(s, g, **e),
                     }, repeats)  # fmt: skip
                 # frames a call makes for each character: one, or the M a plan is applied for
-                per_call = CAMDM_M if name == "camdm" else 1
+                plan = name.startswith("camdm")
+                per_call = CAMDM_M if plan else 1
                 rec = {**run, "record": "speed", "model": name, "batch": batch,
                        "threads": threads, **frame_arithmetic(graph),
-                       ("ms_per_plan" if name == "camdm" else "ms_per_frame"): ms,
+                       ("ms_per_plan" if plan else "ms_per_frame"): ms,
                        "speedup": round(ms["eager"] / ms["fast"], 2),
                        "speedup_int8": round(ms["eager"] / ms["fast_int8"], 2),
                        "character_frames_per_s_fast": round(batch * per_call / ms["fast"] * 1e3, 1),
@@ -281,7 +289,7 @@ def main() -> None:
         if (name, 1, 1) not in results:
             continue
         r = results[name, 1, 1]
-        if name == "camdm":
+        if name.startswith("camdm"):
             ms = r["ms_per_plan"]
             best = min(ms["fast"], ms["fast_int8"])
             emit({**run, "record": "goal", "model": name, "goal_ms": goal, "unit": "planning call",

@@ -454,8 +454,10 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
     x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
     x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
-    x.add_argument("--guide", choices=("past", "style"), default=None,
-                   help="CAMDM: what CFG drops (default past: CFG-PM)")  # fmt: skip
+    x.add_argument("--guide", choices=("past", "style", "none"), default=None,
+                   help="CAMDM: what CFG drops (default past: CFG-PM; none: no guidance, "
+                   "the conditional model alone, half the arithmetic, for plans at gamma "
+                   "1)")  # fmt: skip
     x.add_argument(
         "--weights", choices=("fp32", "int8"), default="fp32",
         help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",

@@ -281,10 +281,11 @@ def tiny_camdm(folder, seed: int = 0, styles=("big", "small", "sad")):
 
 @pytest.fixture(scope="module")
 def camdm(tmp_path_factory):
-    """A tiny CAMDM checkpoint, its plan graphs (CFG on the past and on the style), exported."""
+    """A tiny CAMDM checkpoint, its plan graphs (CFG on the past, on the style, and none),
+    exported."""
     folder = tmp_path_factory.mktemp("camdm")
     ckpt = tiny_camdm(folder)
-    graphs = {guide: frame_graph(ckpt, guide=guide) for guide in ("past", "style")}
+    graphs = {guide: frame_graph(ckpt, guide=guide) for guide in ("past", "style", "none")}
     return folder, ckpt, {k: (g, export_onnx(g)) for k, g in graphs.items()}
 
 
@@ -334,6 +335,48 @@ def test_camdm_plan_graph_at_gamma_one_is_the_conditional_model(camdm):
                       ctl.traj_norm.normalize(traj.flatten(1)).view_as(traj))  # fmt: skip
     x0 = sample_future(ctl.model, ctl.schedule, cond, torch.Generator().manual_seed(0))
     assert (out - (x0 * std[4:] + mean[4:])).abs().max().item() < TOL
+
+
+def test_camdm_conditional_graph_is_the_eager_plan_at_gamma_one(camdm):
+    """guide='none' traces the conditional model alone: no gamma input, the eager plan at 1."""
+    _, ckpt, graphs = camdm
+    graph, data = graphs["none"]
+    ctl, fast = graph.controller, FastFrame(data)
+    assert fast.inputs == ["past", "style", "trajectory", "noise"]
+    assert fast.metadata["plan"]["guide"] == "none" and fast.metadata["sampler"]["name"] == "ddpm"
+    past, style, traj = _plan_inputs(ctl.layout, batch=3, seed=4)
+    eager = ctl.plan(past, style, traj, torch.Generator().manual_seed(6), 1.0)
+    out = fast(past, torch.Generator().manual_seed(6), style=style, trajectory=traj)
+    assert (out - eager).abs().max().item() < TOL
+    with pytest.raises(InputError, match="unknown"):
+        fast(past, None, style=style, trajectory=traj, gamma=torch.ones(3))
+
+
+def test_the_planner_runs_gamma_one_plans_on_the_conditional_graph(camdm):
+    from minimdm.camdm.controller import CAMDMController, ControlConfig
+    from minimdm.fast import CAMDMPlanner, fast_planner
+
+    _, ckpt, graphs = camdm
+    guided, cond = FastFrame(graphs["past"][1]), FastFrame(graphs["none"][1])
+    planner = CAMDMPlanner(guided, cond)
+    config = ControlConfig(M=3, K=3)
+    eager, fast = CAMDMController(ckpt, config), CAMDMController(ckpt, config, planner=planner)
+    start = _standing(eager.skeleton, batch=2)
+    runs = []
+    for ctl in (eager, fast):
+        ctl.reset(start, style=0)
+        runs.append(ctl.run(_commands(20, batch=2), 20, torch.Generator().manual_seed(4)))
+    a, b = runs
+    assert a.replans == b.replans
+    n_one = sum(bool((g == 1).all()) for g in a.gammas)
+    assert planner.calls == {"conditional": n_one, "guided": len(a.gammas) - n_one}
+    assert 0 < n_one < len(a.gammas)
+    assert (a.frames - b.frames).abs().max().item() < TOL
+    # the two graphs must be a guided and a conditional one of the same model
+    with pytest.raises(InputError, match="guided must be a CAMDM plan graph"):
+        CAMDMPlanner(cond, guided)
+    with pytest.raises(InputError, match="needs a CAMDM checkpoint"):
+        fast_planner("amdm")
 
 
 def test_camdm_export_round_trip_keeps_its_metadata(camdm, tmp_path, capsys):
@@ -398,20 +441,25 @@ def _commands(n: int, batch: int):
     return walk.then(turn)
 
 
-def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm):
-    from minimdm.camdm.controller import CAMDMController, ControlConfig
+def _standing(skeleton, batch: int):
+    """Start frames (batch, 8, D): the tiny skeleton walking slowly along +x, facing +x."""
     from minimdm.camdm.data import world_frames
     from minimdm.motion.data import Clip
+
+    quats = np.zeros((8, 4, 4))
+    quats[..., 0] = 1.0
+    root = np.stack([np.arange(8) * 0.03, np.zeros(8), np.full(8, 0.9)], -1)
+    return world_frames(Clip("stand", 30.0, skeleton, root, quats))[None].repeat(batch, 1, 1)
+
+
+def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm):
+    from minimdm.camdm.controller import CAMDMController, ControlConfig
 
     _, ckpt, graphs = camdm
     config = ControlConfig(M=3, K=3)  # F = 6 here: re-plan with part of the last plan left
     eager = CAMDMController(ckpt, config)
     fast = CAMDMController(ckpt, config, planner=FastFrame(graphs["past"][1]))
-    sk = eager.skeleton
-    quats = np.zeros((8, 4, 4))
-    quats[..., 0] = 1.0  # standing still, facing +x
-    root = np.stack([np.arange(8) * 0.03, np.zeros(8), np.full(8, 0.9)], -1)
-    start = world_frames(Clip("stand", 30.0, sk, root, quats))[None].repeat(2, 1, 1)
+    start = _standing(eager.skeleton, batch=2)
     cmds = _commands(20, batch=2)
     runs = []
     for ctl in (eager, fast):

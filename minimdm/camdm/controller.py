@@ -238,11 +238,12 @@ class CAMDMController:
         style: Tensor,
         trajectory: Tensor,
         generator: torch.Generator | NoiseTape | None,
-        gamma: Tensor,
+        gamma: Tensor | None,
         guide: str = "past",
     ) -> Tensor:
         """One planning call on checked tensors: the future ``(B, F, D)`` from ``past``
-        ``(B, P, D)``, ``style`` (B,) indices, ``trajectory`` (B, F, 4) and ``gamma`` (B,).
+        ``(B, P, D)``, ``style`` (B,) indices, ``trajectory`` (B, F, 4) and ``gamma`` (B,)
+        (None: no guidance, the conditional model).
 
         It normalizes the conditions, samples 8 denoising steps with CFG (:func:`~minimdm.camdm.
         sampling.sample_future`) and denormalizes. ``generator`` may be a

@@ -13,7 +13,9 @@ doubled, conditional rows first. At ``gamma = 1`` the combination is the conditi
 itself, so the rule calls the conditional model alone (as the paper does, to save the second
 half): the sample is then bit for bit that of the conditional model. ``gamma`` may differ per
 sample (a controller switches style for some characters only). A traced chain (the fast path,
-:mod:`minimdm.fast`, where ``gamma`` is an input of the graph) always runs both halves.
+:mod:`minimdm.fast`, where ``gamma`` is an input of the graph) always runs both halves;
+``gamma=None`` (no guidance) traces the conditional model alone, the fast path's graph for the
+plans at ``gamma = 1``.
 
 :func:`sample_future` draws F future frames for a batch of conditions.
 """
@@ -42,7 +44,12 @@ def gamma_per_sample(gamma: float | Tensor, B: int, device: torch.device | str) 
 
 
 def guided_x0(
-    model: CAMDM, x_t: Tensor, t: Tensor, cond: Conditions, gamma: float | Tensor, guide: str
+    model: CAMDM,
+    x_t: Tensor,
+    t: Tensor,
+    cond: Conditions,
+    gamma: float | Tensor | None,
+    guide: str,
 ) -> Tensor:
     """The clean estimate of eq. 5 for ``x_t`` (B, F, D) at levels ``t`` (B,).
 
@@ -51,8 +58,10 @@ def guided_x0(
     combines the halves; rows with ``gamma = 1`` take the conditional half as it is (equal to a
     call on B rows up to the float rounding of the larger batch). Under tracing
     (:mod:`minimdm.fast`) ``gamma`` is an input of the graph, which keeps the 2 B rows for every
-    ``gamma``.
+    ``gamma``. ``gamma=None`` is no guidance: the conditional model on the B rows, traced too.
     """
+    if gamma is None:
+        return model(x_t, t, cond)
     g = gamma_per_sample(gamma, x_t.shape[0], x_t.device)
     if not torch.jit.is_tracing() and bool((g == 1).all()):
         return model(x_t, t, cond)
@@ -71,7 +80,7 @@ class GuidedStep(DDPMStep):
         self,
         model: CAMDM,
         schedule: NoiseSchedule,
-        gamma: float | Tensor = 1.0,
+        gamma: float | Tensor | None = 1.0,
         guide: str = "past",
     ) -> None:
         super().__init__(model, schedule, predicts="x0")
@@ -91,7 +100,7 @@ def sample_future(
     cond: Conditions,
     generator: torch.Generator | NoiseTape | None = None,
     *,
-    gamma: float | Tensor = 1.0,
+    gamma: float | Tensor | None = 1.0,
     guide: str = "past",
     count: StepCount | None = None,
 ) -> Tensor:
@@ -99,8 +108,9 @@ def sample_future(
     ancestral chain over the schedule's T levels (CAMDM: T = 8) with :class:`GuidedStep`.
 
     ``generator`` may be a :class:`~minimdm.diffusion.NoiseTape` (the fast path): its draws are
-    x_T, then one (F D) block per step but the last."""
-    if not isinstance(gamma, Tensor):
+    x_T, then one (F D) block per step but the last. ``gamma=None``: no guidance (the
+    conditional model, as at ``gamma = 1``, also when traced)."""
+    if gamma is not None and not isinstance(gamma, Tensor):
         gamma = check_number("gamma", gamma)
     c = model.config
     shape = (cond.batch, c.future, c.dim)

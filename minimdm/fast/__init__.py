@@ -20,6 +20,9 @@ write a second sampler. It traces the model's own per-frame step, with its noise
 
     plan = fast_frame("camdm")                      # one planning call: (B, P, D) -> (B, F, D)
     ctl = CAMDMController("checkpoints/camdm", planner=plan)  # the eager controller's frames
+    ctl = CAMDMController("checkpoints/camdm", planner=fast_planner("camdm"))
+    # the same, with the plans at gamma = 1 (all but the second after a style change) on a
+    # graph of the conditional model alone: half the arithmetic
 
 ``benchmarks/realtime.py`` measures eager against fast.
 """
@@ -34,7 +37,16 @@ from .graphs import (
     SteeredFrame,
     frame_graph,
 )
-from .onnx import FORMAT, METADATA_KEY, FastFrame, export_onnx, fast_frame, read_metadata
+from .onnx import (
+    FORMAT,
+    METADATA_KEY,
+    CAMDMPlanner,
+    FastFrame,
+    export_onnx,
+    fast_frame,
+    fast_planner,
+    read_metadata,
+)
 
 __all__ = [
     "Port",
@@ -51,4 +63,6 @@ __all__ = [
     "read_metadata",
     "FastFrame",
     "fast_frame",
+    "CAMDMPlanner",
+    "fast_planner",
 ]

@@ -404,13 +404,21 @@ class CAMDMPlan(FrameGraph):
     one forward pass at every step, combined with the per-sample scale ``gamma`` (an input: 1
     gives the conditional model, within float rounding; 0.7 is the controller's value after a
     style change). ``guide`` ('past': CFG-PM, or 'style': CFG-S) is fixed at export.
+
+    ``guide="none"`` traces the conditional model alone: no ``gamma`` input, half the rows, the
+    plan at ``gamma = 1``. The controller's plans are at ``gamma = 1`` except in the second after
+    a style change, so :class:`minimdm.fast.CAMDMPlanner` serves those from this graph and the
+    others from a guided one.
     """
 
     kind = "camdm"
 
     def __init__(self, controller, guide: str = "past") -> None:
-        if guide not in ("past", "style"):
-            raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+        if guide not in ("past", "style", "none"):
+            raise InputError(
+                f"guide must be 'past' (CFG-PM), 'style' (CFG-S) or 'none' (no guidance), got "
+                f"{guide!r}"
+            )
         super().__init__(controller.layout.dim)
         self.controller = controller
         self.model = controller.model  # registered, so that the graph holds the weights
@@ -437,30 +445,38 @@ class CAMDMPlan(FrameGraph):
             Port("past", (P, D), f"the last P = {P} frames, in the frame of the last one"),
             Port("style", (), f"the style's index in styles (0..{len(L.styles) - 1})", "int64"),
             Port("trajectory", (F, 4), "the future trajectory: x, y, cos, sin per future frame"),
+        ) + (() if self.guide == "none" else (
             Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)"),
-        )
+        ))  # fmt: skip
 
     def output(self):
         L = self.controller.layout
         return Port("future", (L.future, L.dim), "the F future frames, in the past's frame")
 
     def frame(self, past, generator, *extra):
-        style, trajectory, gamma = extra
-        c = self.controller
-        return c.sample_plan(past, style, trajectory, generator, gamma, self.guide)
+        if self.guide == "none":
+            (style, trajectory), gamma, guide = extra, None, "past"
+        else:
+            (style, trajectory, gamma), guide = extra, self.guide
+        return self.controller.sample_plan(past, style, trajectory, generator, gamma, guide)
 
     def describe(self):
         c = self.controller
         L = c.layout
         T = c.schedule.T
+        cfg = (
+            "none: x0 = G(x_t; cond), the conditional model (gamma = 1)"
+            if self.guide == "none"
+            else "x0 = G(x_t; ∅) + gamma (G(x_t; cond) - G(x_t; ∅)), both halves in one "
+            "forward pass of 2 B rows; ∅ drops the " + self.guide
+        )
         return {
             "sampler": {
-                "name": "ddpm_cfg",
+                "name": "ddpm" if self.guide == "none" else "ddpm_cfg",
                 "levels": list(range(T - 1, -1, -1)),
                 "predicts": "x0",
                 "guide": self.guide,
-                "cfg": "x0 = G(x_t; ∅) + gamma (G(x_t; cond) - G(x_t; ∅)), both halves in one "
-                "forward pass of 2 B rows; ∅ drops the " + self.guide,
+                "cfg": cfg,
             },
             "plan": {"P": L.past, "F": L.future, "D": L.dim, "T": T, "guide": self.guide},
             "schedule": _schedule_dict(c.schedule),

@@ -45,6 +45,8 @@ from minimdm.validate import InputError, InputTypeError
 from .graphs import FrameGraph
 
 __all__ = [
+    "CAMDMPlanner",
+    "fast_planner",
     "FORMAT",
     "METADATA_KEY",
     "WEIGHTS",
@@ -391,6 +393,77 @@ class FastFrame:
             return self(x_prev, generator, **args)
 
         return step
+
+
+class CAMDMPlanner:
+    """CAMDM's planning calls on two graphs, each plan on the cheaper one that computes it.
+
+    ``conditional`` is the graph of the conditional model alone (``guide="none"``), ``guided``
+    one of both halves of eq. 5 (:class:`~minimdm.fast.graphs.CAMDMPlan`). A call whose every
+    ``gamma`` is 1 runs on ``conditional``, half the rows; any other on ``guided``. The
+    controller plans at ``gamma = 1`` except in the second after a style change, so most plans
+    cost half. Both graphs draw the noise from the generator as the eager chain does, which also
+    runs the conditional model alone at ``gamma = 1``: the same frames within float rounding.
+    ``calls`` counts the plans each graph served. A drop-in ``planner`` of
+    :class:`~minimdm.camdm.controller.CAMDMController`; its ``metadata`` is the guided graph's.
+    """
+
+    def __init__(self, guided: FastFrame, conditional: FastFrame) -> None:
+        for name, f, guides in (("guided", guided, ("past", "style")),
+                                ("conditional", conditional, ("none",))):  # fmt: skip
+            if not isinstance(f, FastFrame):
+                raise InputTypeError(f"{name} must be a FastFrame, got {type(f).__name__}")
+            got = (f.kind, f.metadata.get("plan", {}).get("guide"))
+            if f.kind != "camdm" or got[1] not in guides:
+                raise InputError(
+                    f"{name} must be a CAMDM plan graph with guide in {guides}, got kind and "
+                    f"guide {got}"
+                )
+        a, b = (dict(f.metadata["plan"], guide=None) for f in (guided, conditional))
+        if a != b or guided.noise_widths != conditional.noise_widths:
+            raise InputError(f"the two graphs plan differently: guided {a}, conditional {b}")
+        self.guided, self.conditional = guided, conditional
+        self.metadata = guided.metadata
+        self.calls = {"conditional": 0, "guided": 0}
+
+    def __call__(
+        self,
+        past: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        style: Tensor,
+        trajectory: Tensor,
+        gamma: Tensor,
+        noise: Tensor | None = None,
+    ) -> Tensor:
+        """The future (B, F, D), as :class:`FastFrame` computes it on the chosen graph."""
+        if bool((torch.as_tensor(gamma) == 1).all()):
+            self.calls["conditional"] += 1
+            return self.conditional(past, generator, noise=noise, style=style,
+                                    trajectory=trajectory)  # fmt: skip
+        self.calls["guided"] += 1
+        return self.guided(past, generator, noise=noise, style=style, trajectory=trajectory,
+                           gamma=gamma)  # fmt: skip
+
+
+def fast_planner(
+    checkpoint: Any, threads: int | None = 1, weights: str = "fp32", guide: str = "past"
+) -> CAMDMPlanner:
+    """The :class:`CAMDMPlanner` of a CAMDM checkpoint (a loaded one, a path or a shipped name):
+    its conditional graph and its graph guided on ``guide``; ``threads`` and ``weights`` as in
+    :func:`fast_frame`."""
+    from .graphs import frame_graph, load
+
+    ckpt = load(checkpoint)
+    if ckpt.kind != "camdm":
+        raise InputError(f"fast_planner needs a CAMDM checkpoint (kind camdm), got {ckpt.kind!r}")
+    if guide == "none":
+        raise InputError("guide: the planner's guided graph needs 'past' or 'style', got 'none'")
+    guided, conditional = (
+        FastFrame(export_onnx(frame_graph(ckpt, guide=g), weights=weights), threads)
+        for g in (guide, "none")
+    )
+    return CAMDMPlanner(guided, conditional)
 
 
 def fast_frame(
