@@ -398,13 +398,15 @@ def _commands(n: int, batch: int):
     return walk.then(turn)
 
 
-def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm):
+@pytest.mark.parametrize("halflife_replan", [0.0, 0.15])  # re-plans as the paper, inertialized
+def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm, halflife_replan):
     from minimdm.camdm.controller import CAMDMController, ControlConfig
     from minimdm.camdm.data import world_frames
     from minimdm.motion.data import Clip
 
     _, ckpt, graphs = camdm
-    config = ControlConfig(M=3, K=3)  # F = 6 here: re-plan with part of the last plan left
+    # F = 6 here: re-plan with part of the last plan left
+    config = ControlConfig(M=3, K=3, halflife_replan=halflife_replan)
     eager = CAMDMController(ckpt, config)
     fast = CAMDMController(ckpt, config, planner=FastFrame(graphs["past"][1]))
     sk = eager.skeleton
