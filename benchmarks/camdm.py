@@ -29,7 +29,11 @@ with :func:`minimdm.studies.seeds.summarize_seeds`. Not a test.
   never get there count as 180), and the share of pairs whose first such clip ends within 4 s.
   The accuracy of the last clip before the switch says how often the old style was there.
 * ``hfte``: the ablation w/o heuristic future trajectory extension (Table 3) on the shipped
-  model: joint acceleration at the frames where a new plan starts, against the rest.
+  model: joint acceleration at the frames where a new plan starts, against the rest, and by the
+  frame's place in its plan (``accel_by_phase_cm``: 0 is the re-plan frame, the last is the
+  frame before the next re-plan, which the jump also reaches), with the trajectory and
+  orientation errors; both on the paper's controller, then with the re-plan inertialized
+  (``ControlConfig.halflife_replan``, our addition) at half-lives of 0.1-0.25 s.
 * ``ablations`` (Tables 3 and 5): retrains the model as ``--ablation-steps`` steps of
   ``configs/camdm.yaml`` under each variant (the shipped design, one token for all conditions,
   an MLP backbone, T in {2, 4, 16}), and runs ``control`` on a quarter
@@ -379,15 +383,28 @@ def transitions(setting: Setting, args) -> None:
             )
 
 
+HFTE_METHODS = {
+    "camdm": {"extend": True, "halflife_replan": 0.0},
+    "camdm_without_hfte": {"extend": False, "halflife_replan": 0.0},
+    **{
+        f"camdm_replan_hl_{h}": {"extend": True, "halflife_replan": h}
+        for h in (0.1, 0.15, 0.2, 0.25)
+    },
+}
+
+
 def hfte(setting: Setting, args) -> None:
-    """Acceleration at re-plan frames with and without the trajectory extension (Table 3)."""
+    """Acceleration at re-plan frames with and without the trajectory extension (Table 3), on
+    the paper's controller (``halflife_replan=0``), and with the re-plan inertialized at a few
+    half-lives (our addition, :func:`minimdm.camdm.trajectory.inertialize`)."""
     S = len(setting.styles)
     n_cmd, N = args.commands, args.frames
     h1, v1 = preset_commands(n_cmd, N)
     styles = torch.arange(S).repeat_interleave(n_cmd)
     heading, speed = h1.repeat(S, 1), v1.repeat(S, 1)
     for seed in range(args.seeds):
-        for name, extend in (("camdm", True), ("camdm_without_hfte", False)):
+        for name, how in HFTE_METHODS.items():
+            config = ControlConfig(**how)
             res = run_camdm(
                 setting,
                 setting.camdm,
@@ -396,21 +413,28 @@ def hfte(setting: Setting, args) -> None:
                 styles,
                 setting.camdm_starts[styles],
                 seed,
-                ControlConfig(extend=extend),
+                config,
             )
             pos = res.positions
             acc = (pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2]).norm(dim=-1).mean((0, 2)) * 100
             at = torch.zeros(N, dtype=torch.bool)
             at[[r for r in res.replans if r > 0]] = True  # the first frame of each new plan
             acc_at = acc[at[1:-1]]  # acceleration of frame f needs f - 1 and f + 1
+            # frames since the plan began (0: a re-plan frame), for frames 1 .. N - 2
+            phase = torch.arange(N) - torch.cummax(torch.where(at, torch.arange(N), 0), 0)[0]
+            phase = phase[1:-1]
             emit(
                 {
                     "bench": "hfte",
                     "method": name,
                     "seed": seed,
+                    **how,
                     "replans": len(res.replans),
                     "accel_replan_cm": float(acc_at.mean()),
                     "accel_other_cm": float(acc[~at[1:-1]].mean()),
+                    "accel_by_phase_cm": [
+                        round(float(acc[phase == k].mean()), 3) for k in range(int(phase.max()) + 1)
+                    ],
                     **control_errors(
                         res.frames[..., :2],
                         headings(res.frames, setting.skeleton.lateral_axis),

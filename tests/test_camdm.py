@@ -8,6 +8,7 @@ Everything but the shipped checkpoints runs on tiny networks and a synthetic 4-j
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -16,14 +17,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minimdm
+from minimdm.camdm import controller as camdm_controller
 from minimdm.camdm.classifier import frechet_distance, load_classifier
 from minimdm.camdm.controller import CAMDMController, Commands, ControlConfig
-from minimdm.camdm.data import CAMDMLayout, to_canonical, to_world, trajectory_of, world_frames
+from minimdm.camdm.data import (
+    CAMDMLayout,
+    orthonormalize,
+    to_canonical,
+    to_world,
+    trajectory_of,
+    world_frames,
+)
 from minimdm.camdm.model import CAMDM, CAMDMConfig, Conditions
 from minimdm.camdm.sampling import GuidedStep, guided_x0, sample_future
 from minimdm.camdm.train import CAMDMTrainConfig, data_from_clips, load_camdm, train_camdm
 from minimdm.camdm.trajectory import (
     extend_trajectory,
+    inertialize,
     spring_headings,
     spring_path,
     spring_positions,
@@ -33,7 +43,7 @@ from minimdm.cli import main
 from minimdm.diffusion import DDPMStep, NoiseSchedule, reverse_chain
 from minimdm.motion.data import Clip
 from minimdm.motion.skeleton import Skeleton, axis_angle_to_quat
-from minimdm.validate import InputError, MismatchError
+from minimdm.validate import InputError, InputTypeError, MismatchError
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -277,6 +287,33 @@ def test_the_stepped_spring_path_moves_as_the_closed_form_spring(g0, g1, halflif
 # ------------------------------------------------------------------------------ representation
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 99), halflife=st.floats(0.05, 0.5))
+def test_inertialize_starts_on_the_source_and_ends_on_the_target(seed, halflife):
+    g = torch.Generator().manual_seed(seed)
+    source, target = torch.randn(2, 2, D, generator=g), torch.randn(2, 60, D, generator=g)
+    fps = 30.0
+    out = inertialize(source, target, halflife, fps)
+    assert torch.allclose(out[:, 0], source[:, 0], atol=1e-6)
+    gap = (source[:, 0] - target[:, 0]).abs().max()
+    # ten half-lives on, less than a thousandth of the gap is left
+    late = round(10 * halflife * fps)
+    if late < target.shape[1]:
+        assert (out[:, late:] - target[:, late:]).abs().max() < 1e-3 * gap
+    # the offset dies out without ringing: it changes sign at most once per feature
+    offset = out - target
+    flips = (offset[:, 1:].sign() * offset[:, :-1].sign() < 0).sum(1)
+    assert flips.max() <= 1
+
+
+def test_orthonormalize_keeps_clean_frames_and_cleans_blended_ones():
+    clip = walker("big", n=5)
+    w = world_frames(clip)  # (5, D)
+    assert torch.allclose(orthonormalize(w), w, atol=1e-6)
+    blend = orthonormalize(0.5 * (w[0] + w[3]))
+    assert torch.allclose(orthonormalize(blend), blend, atol=1e-6)
+
+
 def test_canonical_frames_round_trip_and_face_x():
     clip = walker("big")
     clip.root_pos[:, :2] += [3.0, -2.0]
@@ -378,6 +415,75 @@ def test_the_controller_without_hfte_still_runs(tiny):
     assert torch.isfinite(out.frames).all() and out.replans == [0, 4, 8]
 
 
+def _plans_and_sources(monkeypatch):
+    """Record each new plan in the world before inertialization, and each inertialization's
+    source (the old plan's next two frames)."""
+    plans, sources = [], []
+    to_world, inertialize_ = camdm_controller.to_world, camdm_controller.inertialize
+
+    def recording_to_world(*args):
+        plans.append(to_world(*args))
+        return plans[-1]
+
+    def recording_inertialize(source, *args):
+        sources.append(source)
+        return inertialize_(source, *args)
+
+    monkeypatch.setattr(camdm_controller, "to_world", recording_to_world)
+    monkeypatch.setattr(camdm_controller, "inertialize", recording_inertialize)
+    return plans, sources
+
+
+@pytest.mark.parametrize("halflife", [0.0, 0.15])
+def test_a_replan_goes_on_from_where_the_old_plan_was_going(tiny, monkeypatch, halflife):
+    """halflife_replan = 0 applies each plan untouched (the paper's controller); with a
+    half-life, the first frame of each new plan is the old plan's next frame."""
+    ckpt, _ = tiny
+    plans, sources = _plans_and_sources(monkeypatch)
+    ctl = CAMDMController(ckpt, ControlConfig(M=3, K=3, halflife_replan=halflife))
+    ctl.reset(walker("big"), n_characters=2)
+    cmd = Commands.hold([1.0, 0.0], 0.0, 0, 7, batch=2).then(
+        Commands.hold([0.6, 0.6], 0.8, 1, 7, 2)
+    )
+    out = ctl.run(cmd, 14, torch.Generator().manual_seed(0))
+    assert out.replans == [0, 3, 6, 7, 10, 13] and len(plans) == 6
+    ends = [*out.replans[1:], 14]
+    if halflife == 0:
+        assert sources == []
+        for r, e, plan in zip(out.replans, ends, plans, strict=True):
+            assert torch.equal(out.frames[:, r:e], plan[:, : e - r])
+        return
+    assert len(sources) == 5  # every re-plan but the first, which has no old plan
+    for r, source, plan in zip(out.replans[1:], sources, plans[1:], strict=True):
+        assert torch.allclose(out.frames[:, r], source[:, 0], atol=1e-5)
+        assert (out.frames[:, r] - plan[:, 0]).abs().max() > 1e-3  # not the raw new plan
+
+
+def test_inertialization_removes_the_pop_of_a_jolting_planner(tiny):
+    """A planner whose every plan starts 5 cm to the side of the last frame: the paper's
+    controller pops at each re-plan; inertialized, the pop is gone."""
+    ckpt, _ = tiny
+
+    def jolting(past, generator, style, trajectory, gamma):  # canonical frames (B, F, D)
+        future = past[:, -1:].repeat(1, F, 1)
+        future[..., 0] += 0.03 * torch.arange(1, F + 1)  # walking along +x
+        future[..., 1] += 0.05  # and a sideways jump at the plan's start
+        return future
+
+    accel = {}
+    for halflife in (0.0, 0.15):
+        config = ControlConfig(M=3, K=3, halflife_replan=halflife)
+        ctl = CAMDMController(ckpt, config, planner=jolting)
+        ctl.reset(walker("big"))
+        out = ctl.run(Commands.hold([0.9, 0.0], 0.0, 0, 30), 30)
+        x = out.positions
+        a = (x[:, 2:] - 2 * x[:, 1:-1] + x[:, :-2]).norm(dim=-1).mean((0, 2))  # frames 1..28
+        at = [r - 1 for r in out.replans if 0 < r < 29]
+        accel[halflife] = a[at].mean().item()
+    assert accel[0.0] > 0.04  # the 5 cm jump, in metres per frame^2
+    assert accel[0.15] < 0.05 * accel[0.0]
+
+
 def test_frechet_distance():
     g = torch.Generator().manual_seed(0)
     a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
@@ -430,6 +536,20 @@ def test_bad_commands_name_the_expected_shape(tiny):
         ctl.run(nan, 9)
     with pytest.raises(InputError, match=r"style indices in \[0, 1\]"):
         ctl.run(Commands.hold([1.0, 0.0], 0.0, 7, 9), 9)
+
+
+@pytest.mark.parametrize(
+    "value, error, words",
+    [
+        (-0.1, InputError, "a finite number >= 0.0, got -0.1"),
+        (float("nan"), InputError, "a finite number >= 0.0, got nan"),
+        ("0.1", InputTypeError, "a finite number >= 0.0, got '0.1'"),
+    ],
+)
+def test_a_bad_replan_halflife_names_the_field(tiny, value, error, words):
+    ckpt, _ = tiny
+    with pytest.raises(error, match=f"ControlConfig.halflife_replan must be {re.escape(words)}"):
+        CAMDMController(ckpt, ControlConfig(halflife_replan=value))
 
 
 def test_a_start_of_another_skeleton_is_refused(tiny):

@@ -452,11 +452,13 @@ def _standing(skeleton, batch: int):
     return world_frames(Clip("stand", 30.0, skeleton, root, quats))[None].repeat(batch, 1, 1)
 
 
-def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm):
+@pytest.mark.parametrize("halflife_replan", [0.0, 0.15])  # re-plans as the paper, inertialized
+def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm, halflife_replan):
     from minimdm.camdm.controller import CAMDMController, ControlConfig
 
     _, ckpt, graphs = camdm
-    config = ControlConfig(M=3, K=3)  # F = 6 here: re-plan with part of the last plan left
+    # F = 6 here: re-plan with part of the last plan left
+    config = ControlConfig(M=3, K=3, halflife_replan=halflife_replan)
     eager = CAMDMController(ckpt, config)
     fast = CAMDMController(ckpt, config, planner=FastFrame(graphs["past"][1]))
     start = _standing(eager.skeleton, batch=2)

@@ -15,7 +15,17 @@ changes. A plan:
    ablation "w/o HFTE"), and blends it with the user's;
 4. samples the future with 8 denoising steps (:func:`~minimdm.camdm.sampling.sample_future`),
    with CFG on the past motion at ``gamma_switch`` (0.7) for re-plans within ``switch_frames``
-   of a style change, else at ``gamma`` (1: the conditional model alone).
+   of a style change, else at ``gamma`` (1: the conditional model alone);
+5. inertializes the new plan (``halflife_replan``, 0.15 s; our addition, not in the paper). A
+   plan's first frame does not quite continue the last applied one: on the shipped model the
+   joint acceleration at a re-plan frame is several times that of the other frames, a small pop
+   every M frames. The gap between the new plan and the old plan's continuation, in position and
+   in velocity, is added to the new plan and dies out through a critically damped spring
+   (:func:`~minimdm.camdm.trajectory.inertialize`): the character goes on from where the old
+   plan was going and joins the new one within a few tenths of a second. The next re-plan's HFTE
+   reads the inertialized plan, since those are the frames that are applied. A cross-fade of the
+   two plans' first frames smoothed the pop as well but followed the commanded speed less well
+   (``benchmarks/camdm.py --only hfte`` measures the half-lives).
 
 :meth:`CAMDMController.plan` is one such sampling call from given past motion and trajectory;
 :meth:`~CAMDMController.sample_plan` is its arithmetic on checked tensors, which the fast path
@@ -51,11 +61,25 @@ from minimdm.validate import (
     describe,
 )
 
-from .data import CAMDMLayout, frame_positions, headings, to_canonical, to_world, world_frames
+from .data import (
+    CAMDMLayout,
+    frame_positions,
+    headings,
+    orthonormalize,
+    to_canonical,
+    to_world,
+    world_frames,
+)
 from .model import CAMDM, Conditions
 from .sampling import gamma_per_sample, sample_future
 from .train import load_camdm
-from .trajectory import blend_trajectories, extend_trajectory, spring_headings, spring_positions
+from .trajectory import (
+    blend_trajectories,
+    extend_trajectory,
+    inertialize,
+    spring_headings,
+    spring_positions,
+)
 
 __all__ = ["ControlConfig", "Commands", "ControlResult", "CAMDMController"]
 
@@ -84,6 +108,10 @@ class ControlConfig:
     """Half-life of the facing spring, seconds."""
     blend_bias: float = 1.0
     """The user's weight at point k of F is (k / F) ** blend_bias."""
+    halflife_replan: float = 0.15
+    """Half-life (seconds) of the spring that absorbs a new plan's jump from the old plan's
+    continuation (our addition; 0: off, the paper's controller). It needs the old plan's next two
+    frames, so it does nothing at re-plans with fewer left (M >= F - 1)."""
 
 
 @dataclass
@@ -161,6 +189,7 @@ class CAMDMController:
         self.config = config or ControlConfig()
         if self.config.guide not in ("past", "style"):
             raise InputError(f"guide must be 'past' or 'style', got {self.config.guide!r}")
+        check_number("ControlConfig.halflife_replan", self.config.halflife_replan, low=0.0)
         self.device = torch.device(device)
         self.layout = CAMDMLayout.from_dict(checkpoint.feature_layout)
         self.skeleton = Skeleton.from_dict(checkpoint.skeleton)
@@ -433,7 +462,11 @@ class CAMDMController:
         since = self._frame - self._changed_at
         gamma = torch.where(since < cfg.switch_frames, cfg.gamma_switch, cfg.gamma).float()
         future = self.plan(past, cmd[2], traj, generator, gamma.to(self.device), cfg.guide)
-        self._plan = to_world(future, xy, h)  # (B, F, D)
+        new = to_world(future, xy, h)  # (B, F, D)
+        old = None if self._plan is None else self._plan[:, self._applied :]
+        if cfg.halflife_replan > 0 and old is not None and old.shape[1] >= 2:
+            new = orthonormalize(inertialize(old[:, :2], new, cfg.halflife_replan, L.fps))
+        self._plan = new
         self._applied = 0
         self._command = cmd
         self._style = cmd[2]

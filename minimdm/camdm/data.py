@@ -51,6 +51,7 @@ __all__ = [
     "world_frames",
     "to_canonical",
     "to_world",
+    "orthonormalize",
     "trajectory_of",
     "frame_positions",
     "smooth_paths",
@@ -182,6 +183,12 @@ def to_world(canonical: Tensor, xy: Tensor, heading: Tensor) -> Tensor:
     rot_w = rot.clone()
     rot_w[:, :, 0] = R @ rot[:, :, 0]
     return _join(root_w, rot_w)
+
+
+def orthonormalize(frames: Tensor) -> Tensor:
+    """Frames ``(..., D)`` with each 6D rotation replaced by the orthonormal one it stands for
+    (Gram-Schmidt, as forward kinematics reads it), e.g. after frames were offset or blended."""
+    return _join(*_split(frames))
 
 
 def trajectory_of(frames: Tensor, lateral_axis: Sequence[float]) -> Tensor:

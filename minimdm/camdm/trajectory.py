@@ -8,7 +8,9 @@
   the user's the further ahead (Holden et al. 2017);
 * :func:`extend_trajectory`: heuristic future trajectory extension (HFTE): when M frames of a
   plan have been applied, its predicted trajectory is M points short; the last K points are
-  recycled, mirrored about the last point, until the length matches.
+  recycled, mirrored about the last point, until the length matches;
+* :func:`inertialize`: the same spring, used to absorb the jump from one plan to the next (our
+  addition to CAMDM's controller, not in the paper).
 
 All are batched over characters: positions ``(B, n, 2)`` on the ground, headings ``(B, n)`` in
 radians, times in seconds.
@@ -30,6 +32,7 @@ __all__ = [
     "spring_headings",
     "blend_trajectories",
     "extend_trajectory",
+    "inertialize",
 ]
 
 
@@ -145,3 +148,27 @@ def extend_trajectory(
         new_h = h_last + wrap_angle(h_last - back)  # 2 theta_n - theta_{n-j}
         xy, heading = torch.cat([xy, new_xy], 1), torch.cat([heading, new_h], 1)
     return xy[:, :length], heading[:, :length]
+
+
+def inertialize(source: Tensor, target: Tensor, halflife: float, fps: float) -> Tensor:
+    """Spring inertialization: ``target (B, n, D)`` made to start where ``source (B, >= 2, D)``
+    starts, moving as it moves, and to become the target through a critically damped spring.
+
+    The offset that is added begins as the gap :math:`\\Delta_0 = s_0 - x_0` between the first
+    frames, with the gap in velocity :math:`\\dot\\Delta_0 = ((s_1 - s_0) - (x_1 - x_0))\\,
+    \\mathrm{fps}`, and dies out with ``halflife`` (seconds), like :func:`spring_positions`'s
+    error; at frame j, :math:`t_j = j / \\mathrm{fps}`:
+
+    .. math:: x_j + e^{-y t_j}\\,\\big(\\Delta_0 + (\\dot\\Delta_0 + y \\Delta_0)\\, t_j\\big),
+              \\qquad y = \\tfrac12\\,\\mathrm{damping}(\\mathrm{halflife}).
+
+    Any feature vector works (positions, 6D rotations); a 6D rotation that comes out slightly
+    off orthonormal is read through Gram-Schmidt anyway. Inertialization is Bollo's (GDC 2016);
+    the spring form follows Holden's "spring-roll-call" notes.
+    """
+    y = halflife_to_damping(halflife) / 2
+    t = torch.arange(target.shape[1], dtype=target.dtype, device=target.device) / fps
+    t = t[None, :, None]  # (1, n, 1)
+    gap = source[:, :1] - target[:, :1]  # (B, 1, D)
+    gap_v = ((source[:, 1:2] - source[:, :1]) - (target[:, 1:2] - target[:, :1])) * fps
+    return target + torch.exp(-y * t) * (gap + (gap_v + gap * y) * t)
