@@ -28,12 +28,15 @@ with :func:`minimdm.studies.seeds.summarize_seeds`. Not a test.
   which a 60-frame clip is classified as the new style (the transition duration; pairs that
   never get there count as 180), and the share of pairs whose first such clip ends within 4 s.
   The accuracy of the last clip before the switch says how often the old style was there.
+  ``cfg_pm_0.7_no_seam`` is CFG-PM at 0.7 on the paper's controller (no re-plan
+  inertialization).
 * ``hfte``: the ablation w/o heuristic future trajectory extension (Table 3) on the shipped
   model: joint acceleration at the frames where a new plan starts, against the rest, and by the
   frame's place in its plan (``accel_by_phase_cm``: 0 is the re-plan frame, the last is the
   frame before the next re-plan, which the jump also reaches), with the trajectory and
   orientation errors; both on the paper's controller, then with the re-plan inertialized
-  (``ControlConfig.halflife_replan``, our addition) at half-lives of 0.1-0.25 s.
+  (``ControlConfig.halflife_replan``, our addition) at half-lives of 0.05-0.2 s; and for each,
+  how soon a sharp command (turn around, 180°) is followed (:func:`turn_around`).
 * ``ablations`` (Tables 3 and 5): retrains the model as ``--ablation-steps`` steps of
   ``configs/camdm.yaml`` under each variant (the shipped design, one token for all conditions,
   an MLP backbone, T in {2, 4, 16}), and runs ``control`` on a quarter
@@ -41,7 +44,8 @@ with :func:`minimdm.studies.seeds.summarize_seeds`. Not a test.
   cuda`` trains them on a GPU; the controller still runs on the CPU). ``--ablation-seed`` sets
   the training seed. The results file holds training seeds 0, 1 and 2 of every variant, trained
   on an H200 (2-3 min each, 6 to 12 side by side); the seed-0 rows predate the option and carry
-  no ``train_seed`` (their config used the default, 0).
+  no ``train_seed`` (their config used the default, 0). They drive the models with the paper's
+  controller (``halflife_replan=0``, no re-plan inertialization, which came later).
 * ``speed``: one planning call (8 steps, CFG batched, batch 1, one thread), eager, in ms; the
   character's frames per second with M = 15 frames applied per plan.
 
@@ -248,8 +252,9 @@ CONTROL_METHODS = ("camdm", "amdm_rl_joystick", "amdm_inpaint_path")
 
 
 def control(
-    setting: Setting, args, ckpt=None, label_prefix="", share: float = 1.0, extra=None
+    setting: Setting, args, ckpt=None, label_prefix="", share: float = 1.0, extra=None, config=None
 ) -> None:
+    config = config or ControlConfig()
     S, copies = len(setting.styles), 2
     n_cmd = max(1, round(args.commands * share))
     N = args.frames
@@ -273,6 +278,7 @@ def control(
                     styles,
                     setting.camdm_starts[styles],
                     seed,
+                    config,
                 )
                 frames, pos = res.frames, res.positions
                 root_xy = frames[..., :2]
@@ -317,6 +323,7 @@ def control(
                 **quality(pos.float(), skeleton, setting.offsets),
                 "diversity_cm": diversity_cm(pos.float(), copies),
                 **style_scores(setting.clf, frames.float(), style_rows, setting.ref),
+                **({"halflife_replan": config.halflife_replan} if method == "camdm" else {}),
                 **(extra or {}),
             }
             emit(row, OUT)
@@ -336,6 +343,8 @@ TRANSITION_METHODS = {
     "cfg_pm_0.7": {"guide": "past", "gamma_switch": 0.7},
     "cfg_pm_1.0": {"guide": "past", "gamma_switch": 1.0},
     "cfg_s_2.0": {"guide": "style", "gamma_switch": 2.0},
+    # the paper's controller, without the re-plan inertialization (our addition)
+    "cfg_pm_0.7_no_seam": {"guide": "past", "gamma_switch": 0.7, "halflife_replan": 0.0},
 }
 
 
@@ -373,6 +382,7 @@ def transitions(setting: Setting, args) -> None:
                     "copies": copies,
                     "gamma_switch": how["gamma_switch"],
                     "guide": how["guide"],
+                    "halflife_replan": ControlConfig(**how).halflife_replan,
                     "duration_frames": float(first.mean()),
                     "success_4s": float((first + 60 <= 120).float().mean()),
                     "reached_6s": float(hit.any(1).float().mean()),
@@ -388,7 +398,7 @@ HFTE_METHODS = {
     "camdm_without_hfte": {"extend": False, "halflife_replan": 0.0},
     **{
         f"camdm_replan_hl_{h}": {"extend": True, "halflife_replan": h}
-        for h in (0.1, 0.15, 0.2, 0.25)
+        for h in (0.05, 0.1, 0.15, 0.2)
     },
 }
 
@@ -415,6 +425,7 @@ def hfte(setting: Setting, args) -> None:
                 seed,
                 config,
             )
+            turn = turn_around(setting, config, seed)
             pos = res.positions
             acc = (pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2]).norm(dim=-1).mean((0, 2)) * 100
             at = torch.zeros(N, dtype=torch.bool)
@@ -441,9 +452,28 @@ def hfte(setting: Setting, args) -> None:
                         heading,
                         speed,
                     ),
+                    **turn,
                 },
                 OUT,
             )
+
+
+def turn_around(setting: Setting, config: ControlConfig, seed: int, frames: int = 300) -> dict:
+    """A sharp command: every style, walking along +x, asked for 1.2 m/s towards -x (180°).
+    The time (s) until the facing is within 45° of the command (median over the styles; one
+    that never gets there in ``frames`` counts as ``frames``), and the share there within 5 s."""
+    S = len(setting.styles)
+    styles = torch.arange(S)
+    h = torch.full((S, frames), math.pi)
+    res = run_camdm(setting, setting.camdm, h, torch.full((S, frames), 1.2), styles,
+                    setting.camdm_starts[styles], seed, config)  # fmt: skip
+    err = wrap_angle(headings(res.frames, setting.skeleton.lateral_axis) - math.pi).abs()
+    there = err < math.radians(45)
+    first = torch.where(there.any(1), there.float().argmax(1), frames).float() / FPS
+    return {
+        "turn_around_s": float(first.median()),
+        "turned_within_5s": float((first <= 5).float().mean()),
+    }
 
 
 ABLATIONS = {
@@ -488,7 +518,9 @@ def ablations(setting: Setting, args) -> None:
             OUT,
         )
         ckpt = load_camdm(work / name)  # on the CPU, where the controller runs
-        control(setting, args, ckpt, f"ablation_{name}:", 0.25, {"train_seed": args.ablation_seed})
+        paper = ControlConfig(halflife_replan=0.0)  # the controller of the stored rows
+        control(setting, args, ckpt, f"ablation_{name}:", 0.25, {"train_seed": args.ablation_seed},
+                paper)  # fmt: skip
 
 
 def speed(setting: Setting, args) -> None:

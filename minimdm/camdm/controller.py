@@ -16,7 +16,7 @@ changes. A plan:
 4. samples the future with 8 denoising steps (:func:`~minimdm.camdm.sampling.sample_future`),
    with CFG on the past motion at ``gamma_switch`` (0.7) for re-plans within ``switch_frames``
    of a style change, else at ``gamma`` (1: the conditional model alone);
-5. inertializes the new plan (``halflife_replan``, 0.15 s; our addition, not in the paper). A
+5. inertializes the new plan (``halflife_replan``, 0.1 s; our addition, not in the paper). A
    plan's first frame does not quite continue the last applied one: on the shipped model the
    joint acceleration at a re-plan frame is several times that of the other frames, a small pop
    every M frames. The gap between the new plan and the old plan's continuation, in position and
@@ -25,7 +25,9 @@ changes. A plan:
    plan was going and joins the new one within a few tenths of a second. The next re-plan's HFTE
    reads the inertialized plan, since those are the frames that are applied. A cross-fade of the
    two plans' first frames smoothed the pop as well but followed the commanded speed less well
-   (``benchmarks/camdm.py --only hfte`` measures the half-lives).
+   (``benchmarks/camdm.py --only hfte`` measures the half-lives). The seam costs some
+   responsiveness: a sharp change of command (turning around) starts later, since each plan's
+   first frames lean on the old plan; 0.1 s is the compromise measured there.
 
 :meth:`CAMDMController.plan` is one such sampling call from given past motion and trajectory;
 :meth:`~CAMDMController.sample_plan` is its arithmetic on checked tensors, which the fast path
@@ -108,7 +110,7 @@ class ControlConfig:
     """Half-life of the facing spring, seconds."""
     blend_bias: float = 1.0
     """The user's weight at point k of F is (k / F) ** blend_bias."""
-    halflife_replan: float = 0.15
+    halflife_replan: float = 0.1
     """Half-life (seconds) of the spring that absorbs a new plan's jump from the old plan's
     continuation (our addition; 0: off, the paper's controller). It needs the old plan's next two
     frames, so it does nothing at re-plans with fewer left (M >= F - 1)."""
