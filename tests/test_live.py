@@ -5,7 +5,8 @@ A page made of the vendored files only (ONNX Runtime Web's WebAssembly build fro
 :func:`minimdm.viz.live.live_bundle` is served on 127.0.0.1 to Debian's Chromium (Playwright,
 offline). The test presses the arrow keys and checks that the root moves in the commanded
 direction, reads the page's own frame counter, and that a model file of another kind shows a
-readable error instead of a frozen canvas.
+readable error instead of a frozen canvas. ``MINIMDM_SCREENSHOTS=folder`` keeps a screenshot of
+the page after the key presses.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import functools
 import http.server
 import json
 import math
+import os
 import shutil
 import threading
 from pathlib import Path
@@ -100,6 +102,10 @@ def _steered_run(browser, site) -> dict:
     s1 = _state(page)
     _wait_frames(page, int(s1["frames"]) + 150)
     s2 = _state(page)
+    if os.environ.get("MINIMDM_SCREENSHOTS"):  # the page after the key presses
+        folder = Path(os.environ["MINIMDM_SCREENSHOTS"])
+        folder.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(folder / "live_after_keys.png"))
     page.close()
     dx, dy = float(s2["x"]) - float(s1["x"]), float(s2["y"]) - float(s1["y"])
     return {
