@@ -322,3 +322,57 @@ def test_configs_load_and_build(tmp_path):
     odd.write_text("width: wide\n")
     with pytest.raises(ValueError, match="width must be int, got 'wide'"):
         load_config(odd)
+
+
+def test_student_steps_feed_back_a_draw_of_the_reverse_chain():
+    windows = make_windows(synthetic_features(), 3)[:16]  # (16, 4, D)
+    sched = NoiseSchedule("cosine", 8)
+    for k, calls in ((8, 8), (3, 3)):  # DDPM over all T steps, or DDIM over k
+        spy = SpyDenoiser("x0")
+        window_loss(spy, windows, 1.0, torch.Generator().manual_seed(0), schedule=sched,
+                    predicts="x0", student_steps=k)  # fmt: skip
+        # per frame: one loss call; before frames 2 and 3, a chain of `calls` steps
+        assert len(spy.calls) == 3 + 2 * calls
+        chain = spy.calls[1 : 1 + calls]
+        assert [int(c[1][0]) for c in chain][0] == 7  # the chain starts at the noisiest level
+        assert all(torch.equal(c[2], windows[:, 0]) for c in chain)  # from the same condition
+        # the next frame is conditioned on the chain's last clean estimate
+        assert torch.allclose(spy.calls[1 + calls][2], chain[-1][3], atol=1e-6)
+    spy = SpyDenoiser("x0")  # teacher forcing draws nothing
+    window_loss(spy, windows, 0.0, torch.Generator().manual_seed(0), schedule=sched,
+                predicts="x0", student_steps=8)  # fmt: skip
+    assert len(spy.calls) == 1
+    with pytest.raises(ValueError, match="student_steps must be >= 0"):
+        TrainConfig(student_steps=-1)
+
+
+def test_frame_geometry_is_zero_on_recorded_frames_and_sees_a_sliding_foot():
+    from minimdm.amdm.losses import FrameGeometry
+    from minimdm.motion.corpora import load_corpus
+    from minimdm.motion.features import Normalizer, encode
+
+    take = load_corpus("bandai-namco-1", split="test", takes=["dataset-1_walk_normal_001"])[0]
+    feats = encode(take)  # (F, D)
+    norm = Normalizer.fit([feats])
+    x = norm.normalize(feats)
+    J, feet = len(take.skeleton), take.skeleton.foot_indices
+    from minimdm.motion.metrics import foot_contact_offsets
+
+    offset = foot_contact_offsets(take.positions, feet)
+    geo = FrameGeometry(norm.mean, norm.std, J, feet, offset, consistency=1, contact=0)
+    one = torch.ones(x.shape[0] - 1)
+    assert float(geo(x[1:], x[:-1], x[1:], one).max()) < 1e-8  # the parts of a frame agree
+    # the displacement it implies is the recorded one, whole body
+    disp = geo.displacement(x[1:], x[:-1])
+    torch.testing.assert_close(disp, feats[1:, 3 + 3 * J : 3 + 6 * J].unflatten(-1, (J, 3)),
+                               atol=1e-5, rtol=0)  # fmt: skip
+    # move the root on without moving the body: the feet slide, both losses see it
+    slid = feats.clone()
+    slid[:, 0] += 0.02  # 2 cm a frame more forward speed
+    xs = norm.normalize(slid)
+    assert float(geo(xs[1:], x[:-1], x[1:], one).mean()) > 0.05
+    contact = FrameGeometry(norm.mean, norm.std, J, feet, offset, consistency=0, contact=1)
+    own = float(contact(x[1:], x[:-1], x[1:], one).mean())
+    assert float(contact(xs[1:], x[:-1], x[1:], one).mean()) > 1.4 * own
+    # the weight (alpha-bar of the drawn level) scales it, per sample
+    assert float(contact(xs[1:], x[:-1], x[1:], 0 * one).abs().max()) == 0.0

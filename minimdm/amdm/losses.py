@@ -22,10 +22,103 @@ from minimdm.diffusion import (
     diffusion_loss,
 )
 
-__all__ = ["MODEL_KINDS", "frame_loss", "window_loss", "make_windows"]
+__all__ = ["MODEL_KINDS", "FrameGeometry", "frame_loss", "window_loss", "make_windows"]
 
 MODEL_KINDS = ("amdm", "mse", "mvae")
 """The three models one trainer serves: the A-MDM denoiser, the MSE regressor, the MVAE."""
+
+
+class FrameGeometry:
+    """Losses on what a predicted frame means as a body, for the A-MDM frame layout (§3.1).
+
+    A frame holds the body three times over: joint positions ``j_p`` (relative to the root's
+    ground projection), joint displacements ``j_v`` and rotations ``j_o``. Nothing in the
+    DDPM loss makes a prediction's parts agree, and the rollout only shows ``j_p`` placed along
+    the integrated root (:func:`~minimdm.motion.features.decode`). Given the previous frame, the
+    displacement that the root and ``j_p`` imply is, in the heading frame of frame f,
+
+    .. math:: \\Delta_f = (d_x, d_y, 0) + j_{p,f} - R_z(-d_r)\\, j_{p,f-1},
+
+    and two losses read it (in the units of the normalized ``j_v``, so that their size compares
+    with the DDPM loss's):
+
+    * **consistency**: :math:`\\|\\Delta_f - j_{v,f}\\|^2`, the three parts agree (as in the
+      official A-MDM code's consistency term and the velocity losses of MDM and CAMDM);
+    * **foot contact**: :math:`w(h_f)\\,\\|\\Delta_f^{xy}\\|^2` for the foot joints, with
+      :math:`w` the contact weight of the foot-sliding metric
+      (:func:`~minimdm.motion.metrics.contact_weight`) at the *recorded* foot height: a foot that
+      the recording plants must not slide in the prediction.
+
+    Both are weighted by :math:`\\bar\\alpha_t`, so that the blurred reconstructions of the noisiest
+    levels are not pushed around. On recorded frames the consistency loss is zero up to float
+    rounding, and the contact loss is the recording's own small slide.
+    """
+
+    def __init__(
+        self,
+        mean: Tensor,
+        std: Tensor,
+        n_joints: int,
+        foot_joints: Sequence[int],
+        foot_offset: Sequence[float],
+        height_threshold: float = 0.025,
+        consistency: float = 1.0,
+        contact: float = 1.0,
+    ) -> None:
+        self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
+        self.J = int(n_joints)
+        if self.mean.shape != (3 + 12 * self.J,) or self.std.shape != self.mean.shape:
+            raise ValueError(
+                f"mean and std must be ({3 + 12 * self.J},) for {self.J} joints, got "
+                f"{tuple(self.mean.shape)} and {tuple(self.std.shape)}"
+            )
+        self.feet = list(foot_joints)
+        self.foot_offset = torch.as_tensor(list(foot_offset), dtype=torch.float32)
+        self.height_threshold = float(height_threshold)
+        self.consistency, self.contact = float(consistency), float(contact)
+        J = self.J
+        self.vel_std = self.std[3 + 3 * J : 3 + 6 * J].reshape(J, 3)  # (J, 3)
+
+    def _parts(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Denormalized root_vel (B, 2), yaw_rate (B,), j_p (B, J, 3), j_v (B, J, 3)."""
+        x = x * self.std.to(x) + self.mean.to(x)
+        J = self.J
+        pos = x[:, 3 : 3 + 3 * J].unflatten(-1, (J, 3))
+        vel = x[:, 3 + 3 * J : 3 + 6 * J].unflatten(-1, (J, 3))
+        return x[:, 0:2], x[:, 2], pos, vel
+
+    def displacement(self, x: Tensor, cond: Tensor) -> Tensor:
+        """:math:`\\Delta_f` (B, J, 3), metres, of frame ``x`` after ``cond`` (both normalized)."""
+        root_vel, yaw, pos, _ = self._parts(x)
+        _, _, prev, _ = self._parts(cond)
+        c, s = torch.cos(-yaw)[:, None], torch.sin(-yaw)[:, None]  # R_z(-d_r)
+        prev = torch.stack(
+            [
+                c * prev[..., 0] - s * prev[..., 1],
+                s * prev[..., 0] + c * prev[..., 1],
+                prev[..., 2],
+            ],
+            dim=-1,
+        )  # (B, J, 3) j_{p,f-1} in the heading frame of f
+        root = torch.cat([root_vel, torch.zeros_like(root_vel[:, :1])], -1)[:, None]  # (B, 1, 3)
+        return root + pos - prev
+
+    def __call__(self, x0_hat: Tensor, cond: Tensor, target: Tensor, weight: Tensor) -> Tensor:
+        """The weighted losses (B,) of a reconstruction ``x0_hat`` of ``target`` after ``cond``;
+        ``weight`` (B,) is :math:`\\bar\\alpha_t`."""
+        disp = self.displacement(x0_hat, cond)  # (B, J, 3)
+        vs = self.vel_std.to(disp)
+        out = torch.zeros_like(weight)
+        if self.consistency > 0:
+            _, _, _, vel = self._parts(x0_hat)
+            out = out + self.consistency * (((disp - vel) / vs) ** 2).flatten(1).mean(1)
+        if self.contact > 0:
+            _, _, pos_gt, _ = self._parts(target)
+            h = pos_gt[:, self.feet, 2] - self.foot_offset.to(pos_gt)  # (B, N) recorded height
+            w = 2 - 2 ** (h / self.height_threshold).clamp(0, 1)  # the FS metric's weight
+            slide = ((disp[:, self.feet, :2] / vs[self.feet, :2]) ** 2).sum(-1)  # (B, N)
+            out = out + self.contact * (w * slide).mean(1)
+        return weight * out
 
 
 def frame_loss(
@@ -37,10 +130,14 @@ def frame_loss(
     schedule: NoiseSchedule | None = None,
     predicts: str = "eps",
     kl_beta: float = 0.2,
+    norm: str = "l2",
+    geometry: FrameGeometry | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
-    * amdm: the DDPM loss (A-MDM eq. 3); the prediction is :math:`\\hat x_0` at the drawn step.
+    * amdm: the DDPM loss (A-MDM eq. 3), squared (``norm="l2"``) or absolute (``"l1"``), plus
+      the ``geometry`` losses of the reconstruction if given; the prediction is
+      :math:`\\hat x_0` at the drawn step.
     * mse: :math:`\\|f(x_{f-1}) - x_f\\|^2 / D`; the prediction is :math:`f(x_{f-1})`.
     * mvae: :math:`\\|\\hat x_f - x_f\\|^2 / D + \\beta\\,\\mathrm{KL}(q \\| \\mathcal N(0, I)) / D`
       with :math:`q = q(z | x_f, x_{f-1})`, the β-ELBO; the prediction is the reconstruction
@@ -51,7 +148,16 @@ def frame_loss(
     if kind == "amdm":
         if schedule is None:
             raise ValueError("schedule is required for kind='amdm'")
-        return diffusion_loss(model, schedule, x, cond, generator, predicts, reduce=False)
+        x0_loss = None
+        if geometry is not None:
+            ac = schedule.alphas_cumprod
+
+            def x0_loss(x0_hat: Tensor, t: Tensor) -> Tensor:
+                return geometry(x0_hat, cond, x, ac.to(x0_hat.device)[t])
+
+        return diffusion_loss(
+            model, schedule, x, cond, generator, predicts, reduce=False, norm=norm, x0_loss=x0_loss
+        )
     if kind == "mse":
         pred = model(cond)
         return ((pred - x) ** 2).mean(1), pred
@@ -74,6 +180,9 @@ def window_loss(
     kl_beta: float = 0.2,
     clip_x0: Any = None,
     teacher_weight: float = 0.0,
+    norm: str = "l2",
+    geometry: FrameGeometry | None = None,
+    student_steps: int = 0,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -86,7 +195,11 @@ def window_loss(
     For A-MDM the prediction fed back is the reconstruction :math:`\\hat x_0` at the noise level
     drawn for the loss, as in the paper. With eps-prediction it divides by
     :math:`\\sqrt{\\bar\\alpha_t}`, which is tiny at the noisiest levels: the clamp keeps it
-    bounded, and x0-prediction avoids the division.
+    bounded, and x0-prediction avoids the division. ``student_steps = k >= 1`` feeds back a
+    real draw from the model instead, what the sampler will feed it at run time: the reverse
+    chain from the same condition (:func:`~minimdm.amdm.sampling.next_frame`, no gradient), over
+    all T steps (DDPM) when ``k = T``, else DDIM over ``k`` steps with :math:`\\eta = 1`. It
+    costs ``k`` extra network calls per fed-back frame.
 
     ``teacher_weight > 0`` adds, while ``p_student > 0``, that weight times the teacher-forced
     loss of the same windows, as the official A-MDM trainer does at every student step: the
@@ -103,7 +216,14 @@ def window_loss(
     bounds = clip_bounds(clip_x0, D, windows.device, windows.dtype)
     if teacher_weight < 0:
         raise ValueError(f"teacher_weight must be >= 0, got {teacher_weight}")
-    kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
+    kw = dict(
+        kind=kind,
+        schedule=schedule,
+        predicts=predicts,
+        kl_beta=kl_beta,
+        norm=norm,
+        geometry=geometry,
+    )
 
     def teacher_loss() -> Tensor:  # every frame from its ground-truth predecessor, one batch
         x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
@@ -112,6 +232,8 @@ def window_loss(
 
     if p_student <= 0:
         return teacher_loss(), {"student_frac": 0.0}
+    if student_steps and kind != "amdm":
+        raise ValueError(f"student_steps needs kind='amdm', got {kind!r}")
     cond = windows[:, 0]  # (B, D)
     losses, n_student = [], 0
     for f in range(1, n1):
@@ -120,6 +242,10 @@ def window_loss(
         if f + 1 < n1:
             pred = pred.detach()
             coin = torch.rand(B, generator=generator, device=windows.device) < p_student  # (B,)
+            if student_steps and coin.any():  # x_f ~ p(x_f | c_f), as at run time
+                pred = pred.clone()
+                pred[coin] = _draw(model, cond[coin], generator, schedule, predicts, student_steps,
+                                   bounds)  # fmt: skip
             pred = clamp_x0(pred, bounds)
             n_student += int(coin.sum())
             cond = torch.where(coin[:, None], pred, windows[:, f])
@@ -128,6 +254,31 @@ def window_loss(
     if teacher_weight > 0:
         loss = loss + teacher_weight * teacher_loss()
     return loss, {"student_frac": frac}
+
+
+@torch.no_grad()
+def _draw(
+    model: nn.Module,
+    cond: Tensor,
+    generator: torch.Generator | None,
+    schedule: NoiseSchedule | None,
+    predicts: str,
+    steps: int,
+    bounds: Any,
+) -> Tensor:
+    """A frame drawn from the model by the sampler's own reverse chain (no gradient)."""
+    from minimdm.amdm.sampling import next_frame
+
+    if schedule is None:
+        raise ValueError("schedule is required to draw from a denoiser")
+    net = getattr(model, "module", model)  # the network inside a DDP wrapper
+    was_training = net.training
+    net.eval()
+    try:
+        return next_frame(net, cond, generator, schedule, min(steps, schedule.T), 1.0, predicts,
+                          bounds)  # fmt: skip
+    finally:
+        net.train(was_training)
 
 
 def make_windows(features: Sequence[Tensor | np.ndarray], n: int) -> Tensor:

@@ -53,7 +53,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
 from minimdm import distributed
-from minimdm.amdm.losses import make_windows, window_loss
+from minimdm.amdm.losses import FrameGeometry, make_windows, window_loss
 from minimdm.amdm.train_config import (
     TrainConfig,
     build_network,
@@ -76,7 +76,7 @@ from minimdm.diffusion import (
 )
 from minimdm.nn import ema_update, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
-from minimdm.validate import InputTypeError, check_output_dir, describe
+from minimdm.validate import InputError, InputTypeError, check_output_dir, describe
 
 __all__ = [
     "TrainConfig",
@@ -116,7 +116,7 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
     from minimdm.motion import features
 
     clips = _load_clips(config.corpus, config.split, config.fps, config.clips, config.loop_frames)
-    arrays = [features.encode(c) for c in clips]  # [(F_i - 1, D)]
+    arrays = [features.encode(c) for c in _with_mirrored(clips, config.mirror)]  # [(F_i - 1, D)]
     normalizer = features.Normalizer.fit(arrays)
     skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
     heldout = None
@@ -131,6 +131,14 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
         "layout": features.FeatureLayout.for_skeleton(skeleton, config.fps),
         "clip_names": clips.names,
     }
+
+
+def _with_mirrored(clips: Any, mirror: bool) -> list:
+    """The clips, followed by their mirror images when ``mirror`` (:mod:`minimdm.motion.mirror`)."""
+    from minimdm.motion.mirror import mirror_clips
+
+    clips = list(clips)
+    return clips + mirror_clips(clips) if mirror else clips
 
 
 def _load_clips(corpus: str, split: str | None, fps: float, names: Any, loop_frames: Any) -> Any:
@@ -295,7 +303,13 @@ def _train(
         kl_beta=config.kl_beta,
         clip_x0=clip_x0,
     )
-    train_kw = dict(loss_kw, teacher_weight=config.teacher_weight)
+    loss_kw["norm"] = config.norm
+    train_kw = dict(
+        loss_kw,
+        teacher_weight=config.teacher_weight,
+        student_steps=config.student_steps,
+        geometry=_geometry(config, windows, normalizer, skeleton),
+    )
 
     # Built-in evaluation: teacher-forced loss on fixed windows with its own generator, on the
     # training takes (eval_loss) and, when the config trains on a split, the test takes.
@@ -394,6 +408,35 @@ def _train(
     )
 
 
+def _geometry(config: TrainConfig, windows: Tensor, normalizer: Any, skeleton: Any):
+    """The geometric losses of ``config`` (None when both weights are 0): the normalizer's
+    statistics, the skeleton's feet, and the feet's contact height read off the training frames
+    as the foot-sliding metric reads it (:func:`~minimdm.motion.metrics.foot_contact_offsets`)."""
+    if config.model_kind != "amdm" or not (config.geo_consistency or config.geo_contact):
+        return None
+    if normalizer is None or skeleton is None:
+        raise InputError("geometric losses need the normalizer and the skeleton of the data")
+    from minimdm.motion.features import Normalizer
+    from minimdm.motion.metrics import foot_contact_offsets
+    from minimdm.motion.skeleton import Skeleton
+
+    norm = normalizer if isinstance(normalizer, Normalizer) else Normalizer.from_dict(normalizer)
+    sk = skeleton if isinstance(skeleton, Skeleton) else Skeleton.from_dict(skeleton)
+    J = len(sk)
+    frames = norm.denormalize(windows[:, 0].cpu())  # (W, D)
+    pos = frames[:, 3 : 3 + 3 * J].unflatten(-1, (J, 3)).double()
+    offset = foot_contact_offsets(pos, sk.foot_indices)
+    return FrameGeometry(
+        norm.mean.to(windows.device),
+        norm.std.to(windows.device),
+        J,
+        sk.foot_indices,
+        offset,
+        consistency=config.geo_consistency,
+        contact=config.geo_contact,
+    )
+
+
 # --------------------------------------------------------------------------------------------
 # The x0 clamp: the training data's range
 
@@ -460,6 +503,7 @@ def checkpoint_training_frames(ckpt: Checkpoint) -> Tensor:
     if ckpt.normalizer is None:
         raise ValueError(f"checkpoint {ckpt.paths.weights} records no normalizer")
     norm = features.Normalizer.from_dict(ckpt.normalizer)
+    clips = _with_mirrored(clips, bool(cfg.get("mirror", False)))
     return torch.cat([norm.normalize(features.encode(c)) for c in clips])  # (N, D)
 
 

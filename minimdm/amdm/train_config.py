@@ -58,9 +58,21 @@ class TrainConfig:
     """Steps of pure teacher forcing (student probability 0)."""
     ramp_steps: int = 500
     """Steps over which the student probability rises linearly from 0 to 1."""
+    student_steps: int = 0
+    """What a student step feeds back: 0, the reconstruction at the loss's noise level (A-MDM
+    §3.2); k >= 1, a frame drawn by the reverse chain over k steps (T: DDPM, fewer: DDIM), as
+    the sampler draws it at run time (amdm only; costs k network calls per fed-back frame)."""
     teacher_weight: float = 0.0
     """Weight of a teacher-forced loss added while the student probability is above 0, as in
     the official A-MDM trainer (student loss + teacher loss at every rollout step); 0: none."""
+    norm: str = "l2"
+    """The DDPM loss's error: 'l2' (squared, eq. 3) or 'l1' (absolute, the official code's)."""
+    geo_consistency: float = 0.0
+    """Weight of the loss that makes a predicted frame's root, positions and displacements agree
+    (amdm only; :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
+    geo_contact: float = 0.0
+    """Weight of the loss that keeps the feet still where the recording plants them (amdm only;
+    :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -90,6 +102,9 @@ class TrainConfig:
     loop_frames: int | None = 150
     """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle;
     DeepMimic only: corpus takes do not loop)."""
+    mirror: bool = False
+    """Also train on every clip reflected left/right (:mod:`minimdm.motion.mirror`): twice the
+    data, as many right turns as left ones. The held-out takes stay as recorded."""
     device: str = "cpu"
     """Where to train: 'cpu' or 'cuda'."""
     config_file: str | None = None
@@ -112,6 +127,14 @@ class TrainConfig:
             raise ValueError(
                 f"teacher_weight must be a finite float >= 0, got {self.teacher_weight}"
             )
+        if self.norm not in ("l1", "l2"):
+            raise ValueError(f"norm must be 'l1' or 'l2', got {self.norm!r}")
+        if self.student_steps < 0:
+            raise ValueError(f"student_steps must be >= 0, got {self.student_steps}")
+        for name in ("geo_consistency", "geo_contact"):
+            w = getattr(self, name)
+            if not (w >= 0 and math.isfinite(w)):
+                raise ValueError(f"{name} must be a finite float >= 0, got {w}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
 

@@ -326,11 +326,16 @@ def diffusion_loss(
     generator: torch.Generator | None = None,
     predicts: str = "eps",
     reduce: bool = True,
+    norm: str = "l2",
+    x0_loss: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The simple DDPM loss (A-MDM eq. 3) at a uniformly drawn step per sample.
 
     With ``predicts="eps"``: :math:`\\|\\epsilon - p_\\theta(x_{f-1}, x_f^t, e^t)\\|^2`; with
     ``"x0"`` the target is the clean sample, with ``"v"`` the velocity :func:`predict_v`.
+    ``norm="l1"`` takes the absolute error instead of the square, as the official A-MDM code
+    does. ``x0_loss(x0_hat, t) -> (B,)`` adds a loss on the reconstruction, e.g. the geometric
+    losses of MDM and CAMDM (:class:`minimdm.amdm.losses.FrameGeometry`).
     Returns ``(loss, x0_hat)``; ``x0_hat`` is the model's reconstruction, which scheduled
     sampling feeds forward as the next condition (A-MDM §3.2). ``reduce=False`` returns the
     per-sample loss.
@@ -349,5 +354,10 @@ def diffusion_loss(
         target, x0_hat = predict_v(schedule, x0, t, noise), predict_x0_from_v(schedule, x_t, t, out)
     else:
         raise ValueError(f"predicts must be one of {PREDICTS}, got {predicts!r}")
-    loss = ((out - target) ** 2).flatten(1).mean(1)
+    if norm not in ("l1", "l2"):
+        raise ValueError(f"norm must be 'l1' or 'l2', got {norm!r}")
+    err = (out - target).abs() if norm == "l1" else (out - target) ** 2
+    loss = err.flatten(1).mean(1)  # (B,)
+    if x0_loss is not None:
+        loss = loss + x0_loss(x0_hat, t)
     return (loss.mean() if reduce else loss), x0_hat

@@ -1,0 +1,273 @@
+"""Does a motion model keep moving like the data? The locomotion yardstick of chapter 3.
+
+From frame ``start_frame`` of every held-out locomotion take of a labelled corpus (walk,
+walk-back, walk-left, walk-right, run, dash), a model draws ``n_samples`` futures of
+``long_seconds`` (default 60 s); the first ``seconds`` (10 s) are scored like the paper's
+metrics, the whole is scored for staying power. Everything is compared with the take the
+rollout started from, the recording of the same actor and content:
+
+* **speed held**: the root's ground speed (the ``root_vel`` feature, A-MDM §3.1) over the last
+  ``tail_seconds`` of the 10 s and of the 60 s, divided by the take's own mean speed. A model
+  that slows to a halt scores near 0 however clean its frames are;
+* **direction held**: the root velocity over the same tail, in the heading frame, projected on
+  the take's own mean heading-frame velocity (a backward walk that turns into a forward walk
+  keeps its speed but not this ratio);
+* **still moving** after 60 s: the share of futures whose tail speed is at least
+  ``moving_ratio`` of the take's;
+* **foot sliding** and **joint acceleration** over the 10 s, against the same measures of the
+  take itself (:mod:`minimdm.motion.metrics`), and **bone error** against the take's actor.
+
+:func:`locomotion_report` returns one record per take, per content and for all takes;
+``benchmarks/locomotion.py`` prints them as JSON lines. Any motion checkpoint runs: A-MDM, the
+MVAE-style and MSE baselines (:func:`~minimdm.amdm.sampling.rollout`) and AAMDM
+(:func:`~minimdm.aamdm.eval.rollout_aamdm`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from minimdm.checkpoint import Checkpoint
+from minimdm.motion import metrics
+from minimdm.motion.corpora import load_motion
+from minimdm.motion.data import Clip, MotionDataset
+from minimdm.motion.features import FeatureLayout, StartPose, encode, start_pose_of
+from minimdm.validate import InputError, MismatchError
+
+__all__ = [
+    "LOCOMOTION",
+    "LocomotionProtocol",
+    "locomotion_takes",
+    "check_corpus_match",
+    "take_reference",
+    "speed_curve",
+    "locomotion_report",
+]
+
+LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
+"""The locomotion contents of the Bandai-Namco corpora, in the order tables print them."""
+
+
+@dataclass
+class LocomotionProtocol:
+    """What :func:`locomotion_report` runs (defaults: the issue's yardstick, about a minute)."""
+
+    start_frame: int = 45
+    """Clip frame of each take that the rollouts start from (1.5 s in at 30 fps)."""
+    n_samples: int = 4
+    """Futures per take."""
+    seconds: float = 10.0
+    """The scored rollout: speed over its tail, foot sliding, acceleration and bone error."""
+    long_seconds: float = 60.0
+    """The whole rollout, for staying power (<= ``seconds``: no long rollout)."""
+    tail_seconds: float = 3.0
+    """The window at the end of each rollout over which speed is measured."""
+    moving_ratio: float = 0.5
+    """A future still moves when its tail speed is at least this share of the take's."""
+    seed: int = 0
+    """Seeds the sampler."""
+    steps: int | None = None
+    """Denoising steps per frame (None: the model's own)."""
+    corpus: str | None = None
+    """The labelled corpus whose test takes start the rollouts (None: the checkpoint's)."""
+
+    def __post_init__(self) -> None:
+        if self.start_frame < 1 or self.n_samples < 1:
+            raise InputError(
+                f"start_frame and n_samples must be >= 1, got {self.start_frame}, {self.n_samples}"
+            )
+        if not 0 < self.tail_seconds <= self.seconds:
+            raise InputError(
+                f"tail_seconds must lie in (0, seconds={self.seconds}], got {self.tail_seconds}"
+            )
+
+
+def locomotion_takes(corpus: str, fps: float | None = None, split: str = "test") -> MotionDataset:
+    """The ``split`` takes of a labelled corpus whose content is locomotion (:data:`LOCOMOTION`),
+    in table order, at ``fps`` (None: as recorded)."""
+    takes = load_motion(corpus, split=split, fps=fps)
+    keep = [c for c in takes if c.labels.get("content") in LOCOMOTION]
+    if not keep:
+        raise InputError(
+            f"corpus {corpus!r} ({split} split) holds no take labelled with a locomotion "
+            f"content {LOCOMOTION}"
+        )
+    keep.sort(key=lambda c: (LOCOMOTION.index(c.labels["content"]), c.name))
+    return MotionDataset(keep)
+
+
+def check_corpus_match(ckpt: Checkpoint, clip: Clip, corpus: str) -> FeatureLayout:
+    """The checkpoint's feature layout, after checking that it fits the corpus's takes: the same
+    joints in the same order and the same frame rate; a mismatch names both."""
+    where = f"checkpoint {ckpt.paths.weights}"
+    if ckpt.feature_layout is None:
+        raise InputError(f"{where} records no feature layout: it is not a motion model")
+    layout = FeatureLayout.from_dict(ckpt.feature_layout)
+    joints = tuple(clip.skeleton.names)
+    if layout.joint_names != joints:
+        raise MismatchError(
+            f"{where} was trained on a skeleton of {layout.n_joints} joints "
+            f"({', '.join(layout.joint_names[:4])}, ...), but corpus {corpus!r} has "
+            f"{len(joints)} ({', '.join(joints[:4])}, ...)"
+        )
+    if abs(layout.fps - clip.fps) > 1e-3 * layout.fps:  # a BVH frame time of 0.0333333 s
+        raise MismatchError(
+            f"{where} runs at {layout.fps:g} frames/s, but corpus {corpus!r} was recorded at "
+            f"{clip.fps:g}"
+        )
+    return layout
+
+
+def speed_curve(features: Tensor, fps: float, window: int) -> Tensor:
+    """Root ground speed in m/s, averaged over consecutive windows of ``window`` frames.
+
+    ``features`` (..., F, D) in feature units; returns (..., F // window).
+    """
+    speed = features[..., 0:2].norm(dim=-1) * fps  # (..., F)
+    n = speed.shape[-1] // window
+    return speed[..., : n * window].unflatten(-1, (n, window)).mean(-1)
+
+
+def take_reference(clip: Clip, foot_offset: list[float]) -> dict[str, Any]:
+    """A take's own measures: mean speed (m/s), mean heading-frame velocity (m/s), foot
+    sliding, joint acceleration and its actor's bone lengths."""
+    feats = encode(clip).double()  # (F - 1, D)
+    vel = feats[:, 0:2] * clip.fps  # (F - 1, 2) m/s in the heading frame
+    sk = clip.skeleton
+    return {
+        "speed": float(vel.norm(dim=-1).mean()),
+        "velocity": vel.mean(0),
+        "FS": metrics.foot_sliding(clip.positions, sk.foot_indices, foot_offset=foot_offset),
+        "Jnt.Accel": metrics.joint_acceleration(clip.positions),
+        "bones": metrics.skeleton_bone_lengths(sk.offsets, sk.parents),
+    }
+
+
+def _generate(ckpt: Checkpoint, takes: MotionDataset, p: LocomotionProtocol, n_frames: int):
+    """Rollouts (C, K, F, D) features and (C, K, F, J, 3) positions from every take."""
+    gen = torch.Generator().manual_seed(p.seed)
+    f0 = p.start_frame
+    starts = [start_pose_of(c, f0) for c in takes]
+    start = StartPose(
+        torch.stack([torch.as_tensor(s.xy, dtype=torch.float64) for s in starts]),
+        torch.stack([torch.as_tensor(s.heading, dtype=torch.float64) for s in starts]),
+    )
+    if ckpt.kind == "aamdm_motion":
+        from minimdm.aamdm.eval import rollout_aamdm
+        from minimdm.aamdm.motion import clip_trajectory_features
+
+        model = ckpt.model.eval()
+        y = torch.stack([encode(c)[f0 - 1] for c in takes]).float()  # (C, D)
+        x = torch.stack([clip_trajectory_features(c)[f0 - 1] for c in takes]).float()
+        r = rollout_aamdm(model, y, x, n_frames, p.n_samples, gen, start_pose=start)
+    else:
+        from minimdm.amdm.sampling import rollout
+
+        init = torch.stack([encode(c)[f0 - 1] for c in takes]).float()  # (C, D)
+        r = rollout(ckpt, init, n_frames, p.n_samples, p.steps, gen, start_pose=start)
+    return r.features.double(), r.positions.double()
+
+
+def _ratio(a: float, b: float) -> float:
+    return float(a / b) if b > 0 else float("nan")
+
+
+def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = None) -> dict:
+    """Run the locomotion yardstick on a motion checkpoint (see the module docstring).
+
+    Returns ``{"takes": [...], "contents": {content: {...}}, "all": {...}, "protocol": {...},
+    "seconds": wall time}``. Speeds are m/s; ``*_ratio`` divide by the take's own value; FS is
+    cm/frame, Jnt.Accel cm/frame², Bone.Err cm.
+    """
+    p = protocol or LocomotionProtocol()
+    corpus = p.corpus or ckpt.config.get("corpus")
+    if not corpus or corpus == "deepmimic":
+        raise InputError(
+            f"checkpoint {ckpt.paths.weights} was trained on {corpus!r}, which has no labelled "
+            "locomotion takes: pass a corpus (e.g. corpus='bandai-namco-1')"
+        )
+    takes = locomotion_takes(corpus)  # at the recorded rate, which the model's must match
+    layout = check_corpus_match(ckpt, takes[0], corpus)
+    short = [c.name for c in takes if c.n_frames <= p.start_frame + 1]
+    if short:
+        raise InputError(f"start_frame {p.start_frame} is past the end of takes {short}")
+    fps = layout.fps
+    n_short = round(p.seconds * fps)
+    n_frames = max(n_short, round(p.long_seconds * fps))
+    tail = round(p.tail_seconds * fps)
+    sk = takes[0].skeleton
+    offset = metrics.foot_contact_offsets(
+        np.concatenate([c.positions for c in takes]), sk.foot_indices
+    )
+    t0 = time.perf_counter()
+    feats, pos = _generate(ckpt, takes, p, n_frames)  # (C, K, F, D), (C, K, F, J, 3)
+    gen_seconds = time.perf_counter() - t0
+    second = round(fps)
+    rows = []
+    for i, clip in enumerate(takes):
+        ref = take_reference(clip, offset)
+        f_i, x_i = feats[i], pos[i]  # (K, F, D), (K, F, J, 3)
+        v = f_i[..., 0:2] * fps  # (K, F, 2) heading-frame velocity, m/s
+        speed = v.norm(dim=-1)  # (K, F)
+        dir_ = ref["velocity"] / ref["velocity"].norm().clamp_min(1e-9)  # (2,)
+        along = (v * dir_).sum(-1)  # (K, F) velocity along the take's own direction
+
+        def tail_mean(x: Tensor, end: int) -> Tensor:  # (K,) mean over the tail ending at end
+            return x[:, end - tail : end].mean(1)
+
+        s10 = tail_mean(speed, n_short)
+        short_pos = x_i[:, :n_short]
+        row = {
+            "take": clip.name,
+            "content": clip.labels["content"],
+            "style": clip.labels.get("style"),
+            "take_speed": ref["speed"],
+            "speed_10s": float(s10.mean()),
+            "speed_ratio_10s": _ratio(float(s10.mean()), ref["speed"]),
+            "along_ratio_10s": _ratio(float(tail_mean(along, n_short).mean()), ref["speed"]),
+            "speed_by_second": speed_curve(f_i, fps, second).mean(0).tolist(),
+            "FS": metrics.foot_sliding(short_pos, sk.foot_indices, foot_offset=offset),
+            "FS_data": ref["FS"],
+            "Jnt.Accel": metrics.joint_acceleration(short_pos),
+            "Jnt.Accel_data": ref["Jnt.Accel"],
+            "Bone.Err": metrics.bone_length_error(short_pos, sk.parents, ref["bones"]),
+        }
+        if n_frames > n_short:
+            s60 = tail_mean(speed, n_frames)
+            row["speed_60s"] = float(s60.mean())
+            row["speed_ratio_60s"] = _ratio(row["speed_60s"], ref["speed"])
+            row["along_ratio_60s"] = _ratio(float(tail_mean(along, n_frames).mean()), ref["speed"])
+            row["moving_60s"] = float((s60 >= p.moving_ratio * ref["speed"]).double().mean())
+            row["Bone.Err_60s"] = metrics.bone_length_error(x_i, sk.parents, ref["bones"])
+        rows.append(row)
+    return {
+        "checkpoint": str(ckpt.paths.weights.parent),
+        "kind": ckpt.kind,
+        "protocol": asdict(p) | {"corpus": corpus},
+        "takes": rows,
+        "contents": {c: _pool([r for r in rows if r["content"] == c]) for c in LOCOMOTION},
+        "all": _pool(rows),
+        "seconds": round(gen_seconds, 1),
+    }
+
+
+def _pool(rows: list[dict]) -> dict[str, float]:
+    """Mean over takes of every number, plus the worst take's speed ratio and the generated
+    FS and acceleration divided by the data's (ratios of means)."""
+    if not rows:
+        return {}
+    keys = [k for k, v in rows[0].items() if isinstance(v, (int, float))]
+    out = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    out["n_takes"] = len(rows)
+    out["worst_speed_ratio_10s"] = float(min(r["speed_ratio_10s"] for r in rows))
+    out["FS_ratio"] = _ratio(out["FS"], out["FS_data"])
+    out["Jnt.Accel_ratio"] = _ratio(out["Jnt.Accel"], out["Jnt.Accel_data"])
+    if "speed_ratio_60s" in rows[0]:
+        out["worst_speed_ratio_60s"] = float(min(r["speed_ratio_60s"] for r in rows))
+    return out

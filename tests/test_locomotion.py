@@ -1,0 +1,74 @@
+"""The locomotion yardstick (minimdm.studies.locomotion) on a tiny model of the real skeleton."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from minimdm.amdm.train import TrainConfig, train_amdm
+from minimdm.checkpoint import load_checkpoint
+from minimdm.studies.locomotion import (
+    LOCOMOTION,
+    LocomotionProtocol,
+    locomotion_report,
+    locomotion_takes,
+    speed_curve,
+)
+from minimdm.validate import InputError, MismatchError
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory):
+    out = tmp_path_factory.mktemp("amdm")
+    config = TrainConfig(
+        width=32, depth=2, time_dim=16, T=4, batch_size=8, total_steps=2, teacher_steps=2,
+        ramp_steps=0, eval_interval=0, ckpt_interval=0, eval_windows=8, corpus="bandai-namco-1",
+        split="train", clips=["dataset-1_walk_normal_002"], loop_frames=None,
+    )  # fmt: skip
+    train_amdm(config, out, progress=False)
+    return load_checkpoint(out)
+
+
+def test_speed_curve_averages_the_root_speed_per_window():
+    f = torch.zeros(2, 60, 9)
+    f[0, :, 0] = 0.03  # 0.9 m/s forward at 30 fps
+    f[1, :30, 1] = -0.04  # 1.2 m/s sideways, then standing
+    curve = speed_curve(f, 30.0, 30)
+    torch.testing.assert_close(curve, torch.tensor([[0.9, 0.9], [1.2, 0.0]]))
+
+
+def test_the_report_covers_every_held_out_locomotion_take(ckpt):
+    p = LocomotionProtocol(n_samples=2, seconds=1.0, long_seconds=2.0, tail_seconds=0.5)
+    rep = locomotion_report(ckpt, p)
+    takes = locomotion_takes("bandai-namco-1")
+    assert [r["take"] for r in rep["takes"]] == list(takes.names) and len(takes) == 15
+    assert list(rep["contents"]) == list(LOCOMOTION)
+    assert sum(c["n_takes"] for c in rep["contents"].values()) == 15
+    for r in rep["takes"]:
+        assert r["take_speed"] > 0.3  # every take moves
+        assert len(r["speed_by_second"]) == 2
+        assert r["speed_ratio_10s"] == pytest.approx(r["speed_10s"] / r["take_speed"])
+        assert 0.0 <= r["moving_60s"] <= 1.0
+        assert r["FS"] >= 0 and r["FS_data"] > 0 and r["Bone.Err"] >= 0
+    all_ = rep["all"]
+    assert all_["worst_speed_ratio_10s"] <= all_["speed_ratio_10s"]
+    assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])
+
+
+def test_a_checkpoint_of_another_skeleton_or_rate_is_named(ckpt):
+    p = LocomotionProtocol(n_samples=1, seconds=1.0, long_seconds=0.0, tail_seconds=0.5)
+    layout = dict(ckpt.feature_layout)
+    other = dataclasses.replace(ckpt, metadata=dict(ckpt.metadata))
+    other.metadata["feature_layout"] = layout | {"fps": 60.0}
+    with pytest.raises(
+        MismatchError, match="runs at 60 frames/s, but corpus 'bandai-namco-1'.* 30"
+    ):
+        locomotion_report(other, p)
+    names = [f"J{i}" for i in range(len(layout["joint_names"]))]
+    other.metadata["feature_layout"] = layout | {"joint_names": names}
+    with pytest.raises(MismatchError, match=r"skeleton of 21 joints \(J0, .*\), but .* \(Hips"):
+        locomotion_report(other, p)
+    with pytest.raises(InputError, match="no labelled locomotion takes"):
+        locomotion_report(ckpt, dataclasses.replace(p, corpus="deepmimic"))
