@@ -9,6 +9,10 @@ export VTK_DEFAULT_OPENGL_WINDOW := vtkEGLRenderWindow
 export PYVISTA_OFF_SCREEN := true
 export MPLBACKEND := Agg
 
+# nbval over the chapters. A busy machine must not fail a cell: nbval waits 2000 s for a cell, but
+# only 5 s for its output messages (raised in notebooks/conftest.py) and 60 s for a kernel to start.
+NBVAL := --nbval-lax --nbval-output-timeout=120 --nbval-kernel-startup-timeout=300
+
 .PHONY: all setup test book lab lint format clean
 
 all: test
@@ -26,7 +30,7 @@ test: $(STAMP)
 	$(PY) -m ruff check minimdm tests benchmarks notebooks
 	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
 	$(PY) -m pytest -q -p no:cacheprovider tests
-	$(PY) -m pytest -q -p no:cacheprovider --nbval-lax -n 2 --dist loadfile notebooks
+	$(PY) -m pytest -q -p no:cacheprovider $(NBVAL) -n 2 --dist loadfile notebooks
 
 book: $(STAMP)
 	$(VENV)/bin/jupyter-book build book --warningiserror --keep-going
