@@ -9,7 +9,15 @@ export VTK_DEFAULT_OPENGL_WINDOW := vtkEGLRenderWindow
 export PYVISTA_OFF_SCREEN := true
 export MPLBACKEND := Agg
 
-.PHONY: all setup test book lab lint format clean
+# nbval over the chapters. A busy machine must not fail a cell: nbval waits 2000 s for a cell, but
+# only 5 s for its output messages (raised in notebooks/conftest.py) and 60 s for a kernel to start.
+NBVAL := --nbval-lax --nbval-output-timeout=120 --nbval-kernel-startup-timeout=300
+# A second CPU dispatch for `make test-dispatch`: AVX2 kernels in ATen, MKL and oneDNN. On an AVX2
+# machine that is its default; there, pass e.g. DISPATCH="ATEN_CPU_CAPABILITY=default
+# MKL_ENABLE_INSTRUCTIONS=SSE4_2 MKL_CBWR=SSE4_2 ONEDNN_MAX_CPU_ISA=SSE41".
+DISPATCH ?= ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 MKL_CBWR=AVX2 ONEDNN_MAX_CPU_ISA=AVX2
+
+.PHONY: all setup test test-dispatch book lab lint format clean
 
 all: test
 
@@ -26,7 +34,14 @@ test: $(STAMP)
 	$(PY) -m ruff check minimdm tests benchmarks notebooks
 	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
 	$(PY) -m pytest -q -p no:cacheprovider tests
-	$(PY) -m pytest -q -p no:cacheprovider --nbval-lax -n 2 --dist loadfile notebooks
+	$(PY) -m pytest -q -p no:cacheprovider $(NBVAL) -n 2 --dist loadfile notebooks
+
+# Every chapter's checked outputs under the machine's own CPU dispatch, then under $(DISPATCH):
+# a checked output must not depend on which SIMD kernels the CPU runs (about twice `make test`'s
+# nbval time).
+test-dispatch: $(STAMP)
+	$(PY) -m pytest -q -p no:cacheprovider $(NBVAL) -n 2 --dist loadfile notebooks
+	env $(DISPATCH) $(PY) -m pytest -q -p no:cacheprovider $(NBVAL) -n 2 --dist loadfile notebooks
 
 book: $(STAMP)
 	$(VENV)/bin/jupyter-book build book --warningiserror --keep-going

@@ -31,10 +31,23 @@ def clips() -> MotionDataset:
     return load_clips()
 
 
+def _seconds(fn, repeats: int = 3) -> float:
+    """The fastest of a few runs: a busy machine slows a run down, never speeds it up."""
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
 def test_all_20_clips_load_fast_at_30_hz(clips):
-    start = time.perf_counter()
-    load_clips()
-    assert time.perf_counter() - start < 2.0
+    # Fast: loading (parsing, forward kinematics, resampling to 30 Hz) costs at most a few times
+    # reading the JSON sources, measured in the same run so that a busy machine slows both alike.
+    # About 4 times here; the bound leaves a factor of 10.
+    load = _seconds(load_clips)
+    read = _seconds(lambda: [json.loads(source_file(n).read_text()) for n in CLIP_NAMES])
+    assert load < 40 * read, f"load_clips took {load:.2f} s, reading the sources {read:.3f} s"
     assert clips.names == CLIP_NAMES and len(clips) == 20
     for c in clips:
         frames = json.loads(source_file(c.name).read_text())["Frames"]

