@@ -22,6 +22,7 @@ precision only where the metadata records it), finite parameters.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -57,6 +58,8 @@ __all__ = [
     "model_spec",
     "build_model",
     "register_model_kind",
+    "fingerprint",
+    "check_same_model",
 ]
 
 FORMAT = "minimdm-checkpoint/1"
@@ -118,6 +121,36 @@ def build_model(spec: dict) -> nn.Module:
         return _BUILDERS[kind](dict(config))
     except (TypeError, ValueError, KeyError) as e:  # unknown or missing keys, bad values
         raise ValueError(f"model config {config} does not build a {kind!r} network: {e}") from e
+
+
+def fingerprint(model: nn.Module) -> str:
+    """A short hash of a network's weights (names, shapes and bytes), independent of its file."""
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def check_same_model(name: str, graph: Any, model: nn.Module, kind: str, where: str) -> None:
+    """:class:`~minimdm.validate.InputError` when ``graph`` (a fast path such as
+    :class:`minimdm.fast.FastFrame`, whose ``metadata["checkpoint"]`` records the kind, name and
+    :func:`fingerprint` of the checkpoint it was exported from) was made from another network
+    than ``model`` (of kind ``kind``, from ``where``), naming both. Anything without such a
+    record (a plain function, a graph exported before fingerprints) is not compared."""
+    meta = getattr(graph, "metadata", None)
+    made_from = meta.get("checkpoint") if isinstance(meta, dict) else None
+    if not isinstance(made_from, dict) or not made_from.get("fingerprint"):
+        return
+    have = fingerprint(model)
+    if (made_from.get("kind"), made_from["fingerprint"]) != (kind, have):
+        raise InputError(
+            f"{name} runs a graph exported from another model: checkpoint "
+            f"{made_from.get('name')!r} (kind {made_from.get('kind')}, weights "
+            f"{made_from['fingerprint']}), but the model given is {where} (kind {kind}, weights "
+            f"{have}); export the graph from this model (minimdm.fast.fast_frame(checkpoint))"
+        )
 
 
 # --------------------------------------------------------------------------------------------

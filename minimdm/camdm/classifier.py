@@ -33,6 +33,7 @@ from minimdm.checkpoint import (
     register_model_kind,
     save_checkpoint,
 )
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import Normalizer, encode_motion
 from minimdm.motion.skeleton import Skeleton, forward_kinematics
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
@@ -172,7 +173,7 @@ def train_classifier(
     from .train import load_clips
 
     out_dir = Path(check_output_dir("out_dir", out_dir))
-    with threads(num_threads):
+    with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         train = load_clips(config.corpus, "train", config.fps, config.contents)
         test = load_clips(config.corpus, "test", config.fps, config.contents)
         styles = sorted({c.labels["style"] for c in train})
@@ -199,7 +200,7 @@ def train_classifier(
         gen = torch.Generator().manual_seed(config.seed)
         log_path = out_dir / "log.jsonl"
         out_dir.mkdir(parents=True, exist_ok=True)
-        log_path.write_text("")
+        atomic_write(log_path, "")
         t0 = time.perf_counter()
 
         def accuracy() -> float:

@@ -44,6 +44,7 @@ from minimdm.checkpoint import (
     save_checkpoint,
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton
 from minimdm.nn import cosine_lr, ema_update, optimizer_step, set_lr
@@ -225,7 +226,7 @@ def train_camdm(
     """Train CAMDM; the checkpoint (EMA weights), its training state and ``log.jsonl`` go to
     ``out_dir``. ``data`` replaces the corpus (tests pass tiny windows)."""
     out_dir = check_output_dir("out_dir", out_dir)
-    with threads(num_threads):
+    with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         return _train(config, Path(out_dir), data, resume, progress, metadata or {})
 
 
@@ -297,7 +298,7 @@ def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
             for ln in log_path.read_text().splitlines()
             if ln.strip() and json.loads(ln)["step"] <= step
         ]
-        log_path.write_text("".join(ln + "\n" for ln in keep))
+        atomic_write(log_path, "".join(ln + "\n" for ln in keep))
 
     def log(rec: dict) -> None:
         with open(log_path, "a") as f:

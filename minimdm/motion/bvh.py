@@ -25,13 +25,13 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from minimdm.files import atomic_write
 from minimdm.utils import num_threads
 from minimdm.validate import InputTypeError, check_number, describe, skeleton_difference
 
@@ -503,12 +503,4 @@ def save_bvh(path: str | Path, clip: Clip, scale: float = 1.0) -> None:
     data = np.concatenate([root, eul.reshape(clip.n_frames, -1)], axis=1)
     out += ["MOTION", f"Frames: {clip.n_frames}", f"Frame Time: {1.0 / clip.fps:.8f}"]
     out += [" ".join(f"{v:.6f}" for v in row) for row in data]
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".bvh.tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(out) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, "\n".join(out) + "\n")

@@ -27,8 +27,9 @@ from tqdm.auto import tqdm
 from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
 from minimdm.control.core import ControlModel, as_control_model
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import encode
-from minimdm.validate import check_choice, check_number
+from minimdm.validate import check_choice, check_number, check_output_dir
 
 from .env import OBSERVATIONS, LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
 from .policy import PolicyNet, base_identity, resolve_checkpoint
@@ -287,7 +288,8 @@ def _callback(total: int, log_path: Path, progress: bool, adapter: SB3VecEnv, t0
             self.bar = tqdm(
                 total=total, disable=not progress, desc="PPO", unit="step", unit_scale=True
             )
-            self.file = open(log_path, "w")
+            atomic_write(log_path, "")  # a fresh curve, then one appended line per rollout
+            self.file = open(log_path, "a")
             self.rows: list[dict] = []
 
         def _on_step(self) -> bool:
@@ -350,6 +352,19 @@ def train_policy(
     PPO rollout; ``out/model.safetensors`` + ``model.json`` the actor and its metadata: the
     config, the task, the steering, the base model's identity, training time and steps.
     """
+    out = check_output_dir("out", out)
+    with RunLock(out, (metadata or {}).get("command")):  # one run per folder
+        return _train_policy(config, out, progress, num_threads, metadata, base)
+
+
+def _train_policy(
+    config: RLConfig,
+    out: Path,
+    progress: bool,
+    num_threads: int,
+    metadata: dict | None,
+    base: Checkpoint | None,
+) -> RLResult:
     from stable_baselines3 import PPO
 
     torch.set_num_threads(num_threads)
