@@ -241,20 +241,30 @@ class RunLock:
         self.command = command or " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]).strip()
         self._fd: int | None = None
         self._key: Path | None = None
+        self._made = False  # the lock made the folder: an empty one goes again at the end
 
     def __enter__(self) -> RunLock:
         if int(os.environ.get("RANK", "0") or 0) != 0:
             return self
+        key = self.folder.resolve()
+        if key in RunLock._held:
+            RunLock._held[key] += 1
+            self._key = key
+            return self
+        made = not self.folder.exists()
         try:
             self.folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise WriteError(self.path, e) from e
-        self._key = self.folder.resolve()
-        if self._key in RunLock._held:
-            RunLock._held[self._key] += 1
-            return self
-        self._fd = self._acquire()
-        RunLock._held[self._key] = 1
+        try:
+            self._fd = self._acquire()
+        except BaseException:
+            if made:
+                with contextlib.suppress(OSError):
+                    self.folder.rmdir()
+            raise
+        self._key, self._made = key, made
+        RunLock._held[key] = 1
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -268,6 +278,9 @@ class RunLock:
                     self.path.unlink(missing_ok=True)
                 os.close(self._fd)  # drops the flock
                 self._fd = None
+                if self._made:  # a run that failed before writing anything leaves no folder
+                    with contextlib.suppress(OSError):
+                        self.folder.rmdir()
         self._key = None
 
     def _refuse(self, record: dict[str, Any], why: str = "") -> LockedError:

@@ -36,7 +36,7 @@ from minimdm.checkpoint import save_checkpoint
 from minimdm.diffusion import data_range
 from minimdm.files import RunLock
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
-from minimdm.validate import check_output_dir
+from minimdm.validate import InputError, check_int, check_number, check_output_dir
 
 __all__ = [
     "AAMDMTrainConfig",
@@ -123,6 +123,24 @@ class AAMDMTrainConfig:
     """Seeds everything."""
     config_file: str | None = None
     """The YAML file this config came from (set by load_train_config)."""
+
+    def __post_init__(self) -> None:
+        sizes = ("z_dim", "ae_width", "ae_depth", "ae_steps", "ae_batch", "T_gan", "latent_dim",
+                 "width", "depth", "disc_width", "window", "polish_steps", "polish_batch",
+                 "gan_steps", "gan_batch")  # fmt: skip
+        for name in sizes:
+            check_int(name, getattr(self, name), low=1)
+        check_int("T_adm", self.T_adm, low=0)
+        check_int("fourier", self.fourier, low=0)
+        if not self.horizons:
+            raise InputError("horizons must list at least one number of frames ahead, got []")
+        for i, h in enumerate(self.horizons):
+            check_int(f"horizons[{i}]", h, low=1)
+        check_number("fps", self.fps, low=1.0, high=1000.0)
+        for name in ("ae_lr", "polish_lr", "lr_g", "lr_d"):
+            check_number(name, getattr(self, name), low=0.0, low_open=True)
+        for name in ("w_val", "w_vel", "w_reg", "polish_w_vel", "r1_gamma"):
+            check_number(name, getattr(self, name), low=0.0)
 
 
 def load_train_config(path: str | Path) -> AAMDMTrainConfig:

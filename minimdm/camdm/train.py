@@ -18,7 +18,8 @@ replaced by the learned null with probability ``p_drop_past`` (0.15, for eq. 5),
 null style with ``p_drop_style`` (for the rejected CFG-S). All randomness comes from one
 generator seeded by ``seed``; a run resumed from its training state continues bit for bit.
 
-``minimdm camdm train configs/camdm.yaml`` runs it from the command line.
+``minimdm camdm train configs/camdm.yaml`` runs it from the command line (into ``runs/camdm/``;
+``--ship`` replaces the shipped ``checkpoints/camdm/``).
 """
 
 from __future__ import annotations
