@@ -36,6 +36,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from minimdm.amdm.train import read_log
 from minimdm.checkpoint import (
     Checkpoint,
     CheckpointMismatchError,
@@ -293,12 +294,8 @@ def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
 
     log_path = out_dir / "log.jsonl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    if log_path.exists():  # drop records past the resumed step
-        keep = [
-            ln
-            for ln in log_path.read_text().splitlines()
-            if ln.strip() and json.loads(ln)["step"] <= step
-        ]
+    if log_path.exists():  # drop records past the resumed step (and a line torn by a kill)
+        keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
         atomic_write(log_path, "".join(ln + "\n" for ln in keep))
 
     def log(rec: dict) -> None:
