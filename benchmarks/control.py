@@ -41,6 +41,7 @@ from minimdm import control as C
 from minimdm.amdm import evaluation
 from minimdm.amdm.sampling import rollout
 from minimdm.checkpoint import load_checkpoint
+from minimdm.files import atomic_output
 from minimdm.motion import metrics
 
 START = {"bandai-namco-1": ("dataset-1_walk_normal_001", 20)}
@@ -124,7 +125,8 @@ def target_reaching(models: dict, start, args) -> None:
             "seconds": round(seconds, 1),
         })  # fmt: skip
         if args.save_paths:
-            np.save(f"{args.save_paths}_{name}.npy", m.root_xy.numpy())
+            with atomic_output(f"{args.save_paths}_{name}.npy") as tmp:
+                np.save(tmp, m.root_xy.numpy())
 
 
 # --------------------------------------------------------------------------- inpainting

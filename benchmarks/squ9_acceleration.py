@@ -35,11 +35,11 @@ import json
 import sys
 import time
 from dataclasses import asdict, replace
-from pathlib import Path
 
 import torch
 from common import emit, hardware
 
+from minimdm.files import atomic_output, atomic_write
 from minimdm.studies.aamdm_variants import METRICS, VariantsConfig, compare_pairs, summarize
 from minimdm.studies.report import plot_panels
 from minimdm.studies.squ9_acceleration import Squ9Study, Squ9StudyConfig, with_budget
@@ -79,7 +79,8 @@ def main() -> None:
         print(json.dumps({"study": "squ9", **r, "hardware": hw}), flush=True)
     print(format_table(rows, _KEYS[1:], digits=3, first=_KEYS[0]), file=sys.stderr)
     if args.figure:
-        plot_panels(study.x_eval, samples, rows).savefig(args.figure, dpi=90)
+        with atomic_output(args.figure) as tmp:
+            plot_panels(study.x_eval, samples, rows).savefig(tmp, dpi=90)
     if args.ablation:
         abl, _ = study.ablation()
         for r in abl:
@@ -109,9 +110,7 @@ def pairs(args) -> None:
     conf["gan"]["steps"], conf["polish"]["steps"] = cfg.gan_steps, cfg.polish_steps
     out = None
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text("")
+        out = atomic_write(args.out, "")  # a fresh file, then one appended line per record
     base = {"study": "squ9_aamdm_pairs", "config": conf, "hardware": hw}
     for r in rows:
         emit({**base, "kind": "seed", **r}, out)

@@ -62,7 +62,7 @@ def _make_hint(name: str) -> str:
     trainer = "minimdm rl" if name.startswith("rl_") else trainer
     if name.startswith("camdm"):
         trainer = "minimdm camdm classifier" if "classifier" in name else "minimdm camdm train"
-    return f"Make it with: {trainer} configs/{name}.yaml"
+    return f"Make it with: {trainer} configs/{name}.yaml --ship"
 
 
 def __getattr__(name: str):

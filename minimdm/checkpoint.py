@@ -14,20 +14,23 @@ A checkpoint with stem ``runs/amdm/model`` is up to three files:
 
 Nothing is pickled: tensors go through safetensors, everything else through JSON. Every file is
 written to a temporary file in the same folder, synced and then renamed over the old one with
-``os.replace``, so an interrupted save leaves the last good checkpoint intact.
+``os.replace`` (:func:`minimdm.files.atomic_write`), so an interrupted save leaves the last good
+checkpoint intact. Loading checks what a file holds before it is used (:mod:`minimdm.bounds`):
+sizes, schedule, frame rates and normalizer statistics in bounds, floating-point weights (half
+precision only where the metadata records it), finite parameters.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from glob import escape as glob_escape
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,6 +40,8 @@ from safetensors.torch import save as st_save
 from torch import Tensor, nn
 
 from minimdm._version import __version__
+from minimdm.bounds import STORAGE, metadata_problem, parameter_problem, tensor_problem
+from minimdm.files import atomic_write
 from minimdm.validate import InputError, MismatchError
 
 __all__ = [
@@ -53,6 +58,8 @@ __all__ = [
     "model_spec",
     "build_model",
     "register_model_kind",
+    "fingerprint",
+    "check_same_model",
 ]
 
 FORMAT = "minimdm-checkpoint/1"
@@ -116,8 +123,38 @@ def build_model(spec: dict) -> nn.Module:
         raise ValueError(f"model config {config} does not build a {kind!r} network: {e}") from e
 
 
+def fingerprint(model: nn.Module) -> str:
+    """A short hash of a network's weights (names, shapes and bytes), independent of its file."""
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def check_same_model(name: str, graph: Any, model: nn.Module, kind: str, where: str) -> None:
+    """:class:`~minimdm.validate.InputError` when ``graph`` (a fast path such as
+    :class:`minimdm.fast.FastFrame`, whose ``metadata["checkpoint"]`` records the kind, name and
+    :func:`fingerprint` of the checkpoint it was exported from) was made from another network
+    than ``model`` (of kind ``kind``, from ``where``), naming both. Anything without such a
+    record (a plain function, a graph exported before fingerprints) is not compared."""
+    meta = getattr(graph, "metadata", None)
+    made_from = meta.get("checkpoint") if isinstance(meta, dict) else None
+    if not isinstance(made_from, dict) or not made_from.get("fingerprint"):
+        return
+    have = fingerprint(model)
+    if (made_from.get("kind"), made_from["fingerprint"]) != (kind, have):
+        raise InputError(
+            f"{name} runs a graph exported from another model: checkpoint "
+            f"{made_from.get('name')!r} (kind {made_from.get('kind')}, weights "
+            f"{made_from['fingerprint']}), but the model given is {where} (kind {kind}, weights "
+            f"{have}); export the graph from this model (minimdm.fast.fast_frame(checkpoint))"
+        )
+
+
 # --------------------------------------------------------------------------------------------
-# Paths and atomic writes.
+# Paths.
 
 
 @dataclass(frozen=True)
@@ -148,56 +185,6 @@ def checkpoint_paths(path: str | os.PathLike) -> CheckpointPaths:
         meta=stem.with_name(name + ".json"),
         train=stem.with_name(name + ".train.safetensors"),
     )
-
-
-def _write(f: BinaryIO, data: bytes) -> None:
-    """Write ``data`` to an open file (a seam for tests that simulate a crash mid-write)."""
-    f.write(data)
-
-
-def _pid_alive(pid: int) -> bool:
-    """Whether a process ``pid`` runs on this machine (one we may not signal counts)."""
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # PermissionError: it exists, under another user
-        return True
-    return True
-
-
-def _remove_stale_temps(path: Path) -> list[Path]:
-    """Delete ``.NAME.tmp<PID>`` files beside ``path`` left by writers that died mid-write
-    (killed between writing and renaming); returns them. A live writer's file is kept."""
-    removed = []
-    prefix = f".{path.name}.tmp"
-    for tmp in path.parent.glob(f"{glob_escape(prefix)}*"):
-        pid = tmp.name[len(prefix) :]
-        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
-            tmp.unlink(missing_ok=True)
-            removed.append(tmp)
-    return removed
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a synced temporary file and ``os.replace``.
-
-    Temporary files of earlier writers of ``path`` that were killed are removed first.
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temps(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            _write(f, data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,6 +260,7 @@ def save_checkpoint(
     model: nn.Module,
     metadata: dict | None = None,
     optimizer_state: dict | None = None,
+    storage: str = "float32",
 ) -> CheckpointPaths:
     """Save ``model`` and its metadata atomically; returns the files written.
 
@@ -287,19 +275,30 @@ def save_checkpoint(
         optimizer_state: optional training state for resuming: a nested dict / list / tuple of
             tensors and JSON values (optimizer ``state_dict``, raw weights, generator states,
             step...). Stored in ``STEM.train.safetensors``, which is written first.
+        storage: ``"float16"`` or ``"bfloat16"`` stores the sampling weights in half precision
+            (half the bytes) and records it as ``storage``; loading restores float32. The
+            training state always keeps full precision.
     """
+    if storage not in STORAGE:
+        raise InputError(f"storage must be one of {', '.join(STORAGE)}, got {storage!r}")
     paths = checkpoint_paths(path)
     meta = _jsonable(dict(metadata or {}))
     meta.update(format=FORMAT, minimdm_version=__version__, model=model_spec(model))
+    if storage != "float32":
+        meta["storage"] = storage
     text = _dumps(meta)
     if optimizer_state is not None:
         tensors: dict[str, Tensor] = {}
         tree = _pack(optimizer_state, tensors, "s")
         header = {_META_KEY: text, "train_state": json.dumps(tree)}
-        _atomic_write(paths.train, st_save(tensors, metadata=header))
-    weights = {k: v.detach().cpu().contiguous().clone() for k, v in model.state_dict().items()}
-    _atomic_write(paths.weights, st_save(weights, metadata={_META_KEY: text}))
-    _atomic_write(paths.meta, (text + "\n").encode())
+        atomic_write(paths.train, st_save(tensors, metadata=header))
+    dtype = STORAGE[storage]
+    weights = {
+        k: v.detach().cpu().to(dtype if v.is_floating_point() else v.dtype).contiguous().clone()
+        for k, v in model.state_dict().items()
+    }
+    atomic_write(paths.weights, st_save(weights, metadata={_META_KEY: text}))
+    atomic_write(paths.meta, (text + "\n").encode())
     return paths
 
 
@@ -430,19 +429,9 @@ def _read_header_meta(path: Path) -> dict:
     return meta
 
 
-def _build_and_load(path: Path, meta: dict, state: dict[str, Tensor]) -> nn.Module:
-    """The network ``meta["model"]`` describes, with ``state`` loaded; :class:`CheckpointError`
-    naming ``path`` and the first tensor that is missing, unexpected or of another shape."""
-    if "model" not in meta:
-        raise CheckpointError(
-            f"checkpoint file {path}: its metadata has no 'model' entry (the network's kind "
-            "and config), so the network cannot be rebuilt"
-        )
-    try:
-        model = build_model(meta["model"])
-    except ValueError as e:
-        raise CheckpointError(f"checkpoint file {path}: {e}") from e
-    own = model.state_dict()
+def _check_fit(path: Path, meta: dict, own: dict[str, Tensor], state: dict[str, Tensor]) -> None:
+    """:class:`CheckpointError` naming ``path`` and the first tensor of the file that is missing,
+    unexpected, of another shape or of a wrong dtype for the network's tensors ``own``."""
     missing = sorted(set(own) - set(state))
     unexpected = sorted(set(state) - set(own))
     if missing or unexpected:
@@ -458,7 +447,44 @@ def _build_and_load(path: Path, meta: dict, state: dict[str, Tensor]) -> nn.Modu
                 f"describes: tensor {k!r} has shape {tuple(state[k].shape)} in the file, but the "
                 f"network needs {tuple(v.shape)}"
             )
-    model.load_state_dict(state, strict=True)
+    if problem := tensor_problem(own, state, meta.get("storage", "float32")):
+        raise CheckpointError(f"checkpoint file {path}: {problem}")
+
+
+def _build_and_load(path: Path, meta: dict, state: dict[str, Tensor]) -> nn.Module:
+    """The network ``meta["model"]`` describes, with ``state`` loaded; :class:`CheckpointError`
+    naming ``path`` and what is wrong: metadata out of bounds (:mod:`minimdm.bounds`), or a
+    tensor that is missing, unexpected, of another shape or dtype, or not finite.
+
+    The network is first built on the ``meta`` device (nothing allocated) and compared with the
+    file, so that metadata describing a huge network fails before any memory is taken."""
+    if "model" not in meta:
+        raise CheckpointError(
+            f"checkpoint file {path}: its metadata has no 'model' entry (the network's kind "
+            "and config), so the network cannot be rebuilt"
+        )
+    if problem := metadata_problem(meta):
+        raise CheckpointError(f"checkpoint file {path}: {problem}")
+    checked = False
+    try:
+        with torch.device("meta"):
+            _check_fit(path, meta, build_model(meta["model"]).state_dict(), state)
+        checked = True
+    except ValueError as e:
+        if isinstance(e, CheckpointError):
+            raise
+        raise CheckpointError(f"checkpoint file {path}: {e}") from e
+    except (RuntimeError, NotImplementedError):  # a builder that computes on its tensors
+        pass  # (the sizes in its config are bounded); compared once it is built
+    try:
+        model = build_model(meta["model"])
+    except ValueError as e:
+        raise CheckpointError(f"checkpoint file {path}: {e}") from e
+    if not checked:
+        _check_fit(path, meta, model.state_dict(), state)
+    model.load_state_dict(state, strict=True)  # half-precision storage becomes float32 here
+    if problem := parameter_problem(model):
+        raise CheckpointError(f"checkpoint file {path}: {problem}")
     return model
 
 
@@ -643,6 +669,6 @@ def update_metadata(
     meta = _jsonable(meta if edited is None else edited)
     _build_and_load(paths.weights, meta, tensors)  # the edit still fits the weights
     text = _dumps(meta)
-    _atomic_write(paths.weights, st_save(tensors, metadata={_META_KEY: text}))
-    _atomic_write(paths.meta, (text + "\n").encode())
+    atomic_write(paths.weights, st_save(tensors, metadata={_META_KEY: text}))
+    atomic_write(paths.meta, (text + "\n").encode())
     return paths

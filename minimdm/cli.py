@@ -2,24 +2,38 @@
 
 ::
 
-    minimdm train configs/amdm.yaml                      # -> checkpoints/amdm/
+    minimdm train configs/amdm.yaml                      # -> runs/amdm/
+    minimdm train configs/amdm.yaml --ship               # -> checkpoints/amdm/ (the book's)
     minimdm sample --checkpoint checkpoints/amdm --frames 300 --out walk.gif
     minimdm eval --checkpoint checkpoints/amdm --json
     minimdm data list                                    # known corpora, licences, present?
     minimdm data download lafan1                         # -> $MINIMDM_DATA/lafan1/
-    minimdm camdm train configs/camdm.yaml               # -> checkpoints/camdm/ (chapter 9)
-    minimdm camdm classifier configs/camdm_classifier.yaml  # -> checkpoints/camdm_classifier/
+    minimdm camdm train configs/camdm.yaml               # -> runs/camdm/ (chapter 9)
+    minimdm camdm classifier configs/camdm_classifier.yaml  # -> runs/camdm_classifier/
     minimdm export --onnx checkpoints/amdm --out amdm.onnx  # one frame as one ONNX graph
     minimdm export --onnx checkpoints/camdm                 # a CAMDM planning call, the same
+    python -m minimdm.aamdm train configs/aamdm.yaml     # -> runs/aamdm/ (chapter 8)
 
-``train`` resumes from the output folder's training state when there is one, so an
-interrupted run continues where it stopped. ``sample`` writes ``.npz`` (a ``positions`` array
-``(F, J, 3)`` in metres, z-up, plus the features), ``.bvh`` (opens in Blender) or ``.gif`` /
-``.mp4``. ``eval`` prints the Table 1 metrics of A-MDM §7.3. ``export --onnx`` writes a frame
-of the model, every denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`;
-for CAMDM a whole planning call: 8 steps with classifier-free guidance).
+The trainers (``train``, ``rl``, ``camdm train``, ``camdm classifier`` and ``python -m
+minimdm.aamdm train``) write to ``runs/<config stem>/`` under the current folder unless
+``--out`` says otherwise. A folder inside the shipped ``checkpoints/`` (however it is spelled)
+is refused unless ``--ship`` says so in so many words; ``--ship`` alone writes the shipped
+checkpoint ``checkpoints/<config stem>/`` and is recorded in its ``command``. A run holds
+``run.lock`` in its folder (:class:`minimdm.files.RunLock`): a second run into the same folder
+is refused, naming the first. ``train`` resumes from the output folder's training state when
+there is one, so an interrupted run continues where it stopped.
+
+``sample`` writes ``.npz`` (a ``positions`` array ``(F, J, 3)`` in metres, z-up, plus the
+features), ``.bvh`` (opens in Blender) or ``.gif`` / ``.mp4``, each atomically. ``eval``
+prints the Table 1 metrics of A-MDM §7.3. ``export --onnx`` writes a frame of the model, every
+denoising step, as one ONNX graph with its metadata (:mod:`minimdm.fast`; for CAMDM a whole
+planning call: 8 steps with classifier-free guidance).
 ``data download`` fetches a corpus (resuming an interrupted download), checks it and unpacks it
 into the data folder (:func:`minimdm.motion.corpora.data_home`).
+
+Every command has one error path (:func:`run`): a user error (bad input, a file that cannot be
+read or written, a full disk, a folder in use) is one line ``minimdm CMD: error: ...`` naming
+the option, config key or file, with exit status 2; ``--debug`` shows its traceback instead.
 """
 
 from __future__ import annotations
@@ -27,12 +41,14 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from minimdm.files import WriteError
 from minimdm.validate import (
     InputError,
     InputTypeError,
@@ -41,10 +57,15 @@ from minimdm.validate import (
     check_output_file,
 )
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "aamdm_main", "build_parser", "build_aamdm_parser", "run", "USER_ERRORS"]
 
 CHECKPOINTS = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where shipped checkpoints live in a source checkout (``minimdm.pretrained`` looks here)."""
+RUNS = Path("runs")
+"""Where the trainers write by default: ``runs/<config stem>/`` under the current folder."""
+MAX_SAMPLED_FRAMES = 1_000_000
+"""The most frames ``minimdm sample`` makes in all (``--frames`` times ``--samples``): about 9
+hours of motion at 30 fps, a file of about 1.3 GB for a 21-joint skeleton."""
 
 
 def _overrides(pairs: list[str]) -> dict:
@@ -56,19 +77,66 @@ def _overrides(pairs: list[str]) -> dict:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise ValueError(f"--set expects KEY=VALUE, got {pair!r}")
-        out[key.strip()] = yaml.safe_load(value)
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as e:
+            problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+            raise ValueError(f"--set {pair!r}: the value is not valid YAML: {problem}") from None
     return out
 
 
-def _recorded_command(verb: str, args: argparse.Namespace, default_threads: int) -> str:
-    """The command line a checkpoint records: ``minimdm VERB CONFIG [--set ...] [--out ...]``."""
+def _shipped_roots() -> list[Path]:
+    """The shipped checkpoint folders: the checkout's ``checkpoints/`` and
+    ``minimdm.CHECKPOINT_DIR`` (``$MINIMDM_CHECKPOINTS``), symlinks resolved."""
+    from minimdm import CHECKPOINT_DIR
+
+    return list(dict.fromkeys(Path(os.path.realpath(p)) for p in (CHECKPOINTS, CHECKPOINT_DIR)))
+
+
+def _shipped_root_of(folder: Path) -> Path | None:
+    """The shipped checkpoint folder that holds ``folder`` (however it is spelled), or None."""
+    real = Path(os.path.realpath(folder))
+    return next((r for r in _shipped_roots() if real == r or r in real.parents), None)
+
+
+def _train_out(args: argparse.Namespace) -> Path:
+    """The output folder of a training command, checked before any work: ``--out``, else
+    ``runs/<config stem>`` (with ``--ship``: the shipped ``checkpoints/<config stem>``). A
+    folder inside the shipped checkpoints is refused without ``--ship``."""
+    from minimdm import CHECKPOINT_DIR
+
+    stem = Path(args.config).stem
+    if args.out is not None:
+        out = check_output_dir("--out", args.out)  # '' is refused here
+    else:
+        out = CHECKPOINT_DIR / stem if args.ship else RUNS / stem
+    root = _shipped_root_of(out)
+    if root is not None and not args.ship:
+        raise InputError(
+            f"--out {out} lies in {root}, the shipped checkpoints the book loads; pass --ship to "
+            f"replace a shipped checkpoint deliberately, or write elsewhere (default: "
+            f"{RUNS / stem})"
+        )
+    return check_output_dir("--out", out)
+
+
+def _recorded_command(prog: str, verb: str, args: argparse.Namespace, threads: int) -> str:
+    """The command line a checkpoint records: ``PROG VERB CONFIG [--set ...] [--out ...]
+    [--ship] [--threads N]``; a shipped folder is spelled from the project root."""
     import shlex
 
-    command = ["minimdm", verb, Path(args.config).as_posix()]
-    command += [f"--set {k}={v}" for k, v in sorted(_overrides(args.set or []).items())]
-    if args.out:
-        command.append(f"--out {shlex.quote(Path(args.out).as_posix())}")
-    if args.threads != default_threads:
+    command = [prog, verb, Path(args.config).as_posix()]
+    command += [f"--set {k}={v}" for k, v in sorted(_overrides(getattr(args, "set", None) or [])
+                                                     .items())]  # fmt: skip
+    if args.out is not None:
+        out = Path(args.out)
+        root = _shipped_root_of(out)
+        if root is not None:  # checkpoints/amdm_steps/T5, wherever the checkout lies
+            out = Path(root.name) / Path(os.path.realpath(out)).relative_to(root)
+        command.append(f"--out {shlex.quote(out.as_posix())}")
+    if args.ship:
+        command.append("--ship")
+    if args.threads != threads:
         command.append(f"--threads {args.threads}")
     return " ".join(command)
 
@@ -78,8 +146,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from minimdm.config import with_changes
 
     check_device("--device", args.device)
-    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    check_output_dir("--out", out)  # before the corpus is loaded
+    out = _train_out(args)  # before the corpus is loaded
     config = load_config(args.config)
     changes = _overrides(args.set or [])
     if args.steps is not None:
@@ -94,7 +161,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         resume=not args.restart,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": _recorded_command("train", args, 1)},
+        metadata={"command": _recorded_command("minimdm", "train", args, 1)},
     )
     summary = {
         "checkpoint": str(result.checkpoint.paths.weights),
@@ -114,15 +181,14 @@ def _cmd_rl(args: argparse.Namespace) -> int:
     from minimdm.config import with_changes
     from minimdm.rl.train import load_config, train_policy
 
-    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    check_output_dir("--out", out)  # before the base model is loaded
+    out = _train_out(args)  # before the base model is loaded
     config = with_changes(load_config(args.config), _overrides(args.set or []), where="--set")
     result = train_policy(
         config,
         out,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": _recorded_command("rl", args, 2)},
+        metadata={"command": _recorded_command("minimdm", "rl", args, 2)},
     )
     summary = {
         "checkpoint": str(result.checkpoint.paths.weights),
@@ -138,8 +204,7 @@ def _cmd_camdm_train(args: argparse.Namespace) -> int:
     from minimdm.camdm.train import load_train_config, train_camdm
     from minimdm.config import with_changes
 
-    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    check_output_dir("--out", out)  # before the corpus is loaded
+    out = _train_out(args)  # before the corpus is loaded
     changes = _overrides(args.set or [])
     if args.steps is not None:
         changes["total_steps"] = args.steps
@@ -151,7 +216,7 @@ def _cmd_camdm_train(args: argparse.Namespace) -> int:
         resume=not args.restart,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": _recorded_command("camdm train", args, 1)},
+        metadata={"command": _recorded_command("minimdm", "camdm train", args, 1)},
     )
     summary = {
         "checkpoint": str(ckpt.paths.weights),
@@ -166,8 +231,7 @@ def _cmd_camdm_classifier(args: argparse.Namespace) -> int:
     from minimdm.camdm.classifier import load_classifier_config, train_classifier
     from minimdm.config import with_changes
 
-    out = Path(args.out) if args.out else CHECKPOINTS / Path(args.config).stem
-    check_output_dir("--out", out)
+    out = _train_out(args)
     config = with_changes(
         load_classifier_config(args.config), _overrides(args.set or []), where="--set"
     )
@@ -176,7 +240,7 @@ def _cmd_camdm_classifier(args: argparse.Namespace) -> int:
         out,
         progress=not args.quiet,
         num_threads=args.threads,
-        metadata={"command": _recorded_command("camdm classifier", args, 1)},
+        metadata={"command": _recorded_command("minimdm", "camdm classifier", args, 1)},
     )
     summary = {
         "checkpoint": str(ckpt.paths.weights),
@@ -225,11 +289,17 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     from minimdm.amdm import evaluation
     from minimdm.amdm.sampling import rollout
     from minimdm.checkpoint import load_checkpoint
+    from minimdm.files import atomic_output
     from minimdm.motion import bvh, features
 
     # Everything the user gave is checked before the first frame is sampled: a bad --out must
     # not throw away minutes of sampling.
     out = check_output_file("--out", args.out, (".npz", ".bvh", ".gif", ".mp4"))
+    if args.frames * args.samples > MAX_SAMPLED_FRAMES:  # before anything is allocated
+        raise InputError(
+            f"--frames times --samples must be at most {MAX_SAMPLED_FRAMES} frames in all, got "
+            f"{args.frames} x {args.samples} = {args.frames * args.samples}"
+        )
     device = check_device("--device", args.device)
     start = _parse_start(args.start) if args.start is not None else None
     ckpt = load_checkpoint(args.checkpoint, device=device)
@@ -257,14 +327,15 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     skeleton = evaluation.checkpoint_skeleton(ckpt)
     if out.suffix.lower() == ".npz":
         squeeze = args.samples == 1
-        np.savez_compressed(
-            out,
-            positions=pos[0] if squeeze else pos,
-            features=feats[0] if squeeze else feats,
-            parents=np.asarray(skeleton.parents),
-            joint_names=np.asarray(skeleton.names),
-            fps=np.asarray(ckpt.config.get("fps", 30.0)),
-        )
+        with atomic_output(out) as tmp:
+            np.savez_compressed(
+                tmp,
+                positions=pos[0] if squeeze else pos,
+                features=feats[0] if squeeze else feats,
+                parents=np.asarray(skeleton.parents),
+                joint_names=np.asarray(skeleton.names),
+                fps=np.asarray(ckpt.config.get("fps", 30.0)),
+            )
     elif out.suffix.lower() == ".bvh":
         for k in range(args.samples):
             path = out if args.samples == 1 else out.with_name(f"{out.stem}_{k}{out.suffix}")
@@ -290,6 +361,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     protocol = evaluation.Protocol(
         n_states=args.states, n_samples=args.samples, seeds=tuple(range(args.seeds))
     )
+    have = evaluation.available_states(ckpt, protocol)
+    if args.states > have:
+        raise InputError(
+            f"--states must be at most {have} (the frames of {ckpt.paths.weights}'s evaluation "
+            f"takes with {protocol.ade_frames} frames after them), got {args.states}"
+        )
     table = evaluation.table1(
         {Path(args.checkpoint).name: ckpt}, protocol, steps=args.steps, device=device
     )
@@ -346,20 +423,33 @@ def _cmd_data_download(args: argparse.Namespace) -> int:
     return 0
 
 
-def _int_arg(low: int):
-    """An argparse type: an integer >= ``low`` (argparse then reports ``minimdm CMD: error:``)."""
+def _int_arg(low: int, high: int | None = None):
+    """An argparse type: an integer >= ``low`` (and <= ``high``); argparse then reports
+    ``minimdm CMD: error: argument --NAME: ...``."""
+    words = f"an integer >= {low}" if high is None else f"an integer in [{low}, {high}]"
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be {words}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {words}, got {value}")
         return value
 
-    parse.__name__ = f"integer >= {low}"
+    parse.__name__ = words.removeprefix("an ")
     return parse
+
+
+def _add_out(p: argparse.ArgumentParser, what: str = "checkpoint folder") -> None:
+    """``--out`` and ``--ship`` of a training command."""
+    p.add_argument("--out", help=f"{what} (default: runs/<config stem>)")
+    p.add_argument(
+        "--ship",
+        action="store_true",
+        help="replace the shipped checkpoint: write into checkpoints/ (default "
+        "checkpoints/<config stem>); without it a folder in checkpoints/ is refused",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -374,7 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = add("train", help="train a model from a YAML config (resumes if it can)")
     t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm.yaml")
-    t.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
+    _add_out(t)
     t.add_argument("--steps", type=_int_arg(1), help="override total_steps")
     t.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
@@ -387,7 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = add("rl", help="train a steering policy with PPO (chapter 7)")
     r.add_argument("config", help="a YAML file of configs/, e.g. configs/rl_target.yaml")
-    r.add_argument("--out", help="policy folder (default: checkpoints/<config stem>)")
+    _add_out(r, "policy folder")
     r.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
     )
@@ -408,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         ct = cadd(verb, help=f"train {what.split(',')[0]}")
         ct.add_argument("config", help=f"a YAML file of configs/: {what}")
-        ct.add_argument("--out", help="checkpoint folder (default: checkpoints/<config stem>)")
+        _add_out(ct)
         ct.add_argument(
             "--set", action="append", metavar="KEY=VALUE", help="override a config field"
         )
@@ -421,9 +511,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = add("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
-    s.add_argument("--frames", type=_int_arg(1), required=True, help="frames to generate")
+    s.add_argument("--frames", type=_int_arg(1, MAX_SAMPLED_FRAMES), required=True,
+                   help="frames to generate")  # fmt: skip
     s.add_argument("--out", required=True, help="output .npz, .bvh, .gif or .mp4")
-    s.add_argument("--samples", type=_int_arg(1), default=1, help="futures from the start pose")
+    s.add_argument("--samples", type=_int_arg(1, 10_000), default=1,
+                   help="futures from the start pose")  # fmt: skip
     s.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     s.add_argument(
         "--start",
@@ -431,7 +523,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="start clip[:frame], e.g. dataset-1_run_normal_001:10 (default: the first held-out "
         "take, or the first training clip)",
     )
-    s.add_argument("--seed", type=_int_arg(0), default=0)
+    s.add_argument("--seed", type=_int_arg(0, 2**63 - 1), default=0)
     s.add_argument("--device", default="cpu")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=_cmd_sample)
@@ -440,8 +532,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--states", type=_int_arg(1), default=10, help="fixed initial states")
-    e.add_argument("--samples", type=_int_arg(2), default=50, help="samples per initial state")
-    e.add_argument("--seeds", type=_int_arg(1), default=3, help="repeated seeds (mean ± std)")
+    e.add_argument("--samples", type=_int_arg(2, 10_000), default=50,
+                   help="samples per initial state")  # fmt: skip
+    e.add_argument("--seeds", type=_int_arg(1, 1000), default=3,
+                   help="repeated seeds (mean ± std)")  # fmt: skip
     e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
@@ -478,6 +572,40 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _cmd_aamdm_train(args: argparse.Namespace) -> int:
+    from minimdm.aamdm.motion_train import load_train_config, train_aamdm_motion
+    from minimdm.config import with_changes
+    from minimdm.utils import num_threads
+
+    out = _train_out(args)  # before the corpus is loaded
+    config = with_changes(load_train_config(args.config), _overrides(args.set or []), where="--set")
+    command = _recorded_command("python -m minimdm.aamdm", "train", args, 1)
+    with num_threads(args.threads):
+        _, report = train_aamdm_motion(config, out, progress=not args.quiet, command=command)
+    print(json.dumps({"checkpoint": str(out), **report}))
+    return 0
+
+
+def build_aamdm_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m minimdm.aamdm`` (chapter 8's motion AAMDM)."""
+    p = argparse.ArgumentParser(prog="python -m minimdm.aamdm", description="Train a motion AAMDM.")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--debug", action="store_true", help="show the traceback of an error, not one line"
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    t = sub.add_parser("train", parents=[common], help="train a motion AAMDM from a YAML config")
+    t.add_argument("config", help="a YAML file of configs/, e.g. configs/aamdm.yaml")
+    _add_out(t)
+    t.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a config field (repeatable)"
+    )
+    t.add_argument("--threads", type=_int_arg(1), default=1, help="torch CPU threads (default 1)")
+    t.add_argument("--quiet", action="store_true", help="no progress lines")
+    t.set_defaults(fn=_cmd_aamdm_train)
+    return p
+
+
 USER_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,  # InputError, BVHError, CheckpointError, CheckpointMismatchError, config errors
     InputTypeError,
@@ -485,28 +613,41 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
     NotADirectoryError,
     IsADirectoryError,
     PermissionError,
+    WriteError,  # a full disk, a read-only folder: the file is named, nothing is left behind
 )
-"""What ``minimdm`` reports as one line ``minimdm CMD: error: ...`` (exit code 2): bad input,
-unreadable files, and every error the library raises for them. Anything else is a bug and keeps
-its traceback; ``--debug`` shows the traceback of these too."""
+"""What the commands report as one line ``PROG CMD: error: ...`` (exit code 2): bad input,
+unreadable or unwritable files, a folder in use by another run, and every error the library
+raises for them. Anything else is a bug and keeps its traceback; ``--debug`` shows the
+traceback of these too."""
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``minimdm`` console script."""
+def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
+    """Parse ``argv`` and run its command: the one error path of every command (module
+    docstring). The parser's commands set ``fn`` and take ``--debug``."""
     from minimdm.amdm.sampling import NonFiniteFrameError
     from minimdm.motion.download import DownloadError
 
-    args = build_parser().parse_args(argv)
+    args = parser.parse_args(argv)
     try:
         return args.fn(args)
     except (*USER_ERRORS, DownloadError, NonFiniteFrameError) as e:
         if args.debug:
             raise
         sub = getattr(args, "data_command", None) or getattr(args, "camdm_command", None)
-        where = " ".join(filter(None, [args.command, sub]))
+        where = " ".join(filter(None, [parser.prog, args.command, sub]))
         message = "; ".join(line.strip() for line in str(e).splitlines() if line.strip())
-        print(f"minimdm {where}: error: {message}", file=sys.stderr)
+        print(f"{where}: error: {message}", file=sys.stderr)
         return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``minimdm`` console script."""
+    return run(build_parser(), argv)
+
+
+def aamdm_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m minimdm.aamdm``."""
+    return run(build_aamdm_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -37,7 +37,15 @@ def load_config(path: str | os.PathLike, cls: type[T]) -> T:
     if not path.is_file():
         what = "is a folder" if path.is_dir() else "does not exist"
         raise FileNotFoundError(f"config file {path} {what}; expected a {suffix} file")
-    text = path.read_text(encoding="utf-8-sig")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(
+            f"{path}: not a text file (byte {e.start} is not UTF-8); a config is a UTF-8 "
+            f"{suffix} file"
+        ) from None
+    if "\x00" in text:
+        raise ValueError(f"{path}: not a text file (it holds NUL bytes); expected a {suffix} file")
     if suffix == ".toml":
         try:
             data = _toml().loads(text)
@@ -69,9 +77,13 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
     converted element by element. ``where`` names the source in error messages.
 
     Raises:
-        ValueError: an unknown key (named, with the known ones) or a value of the wrong type.
+        ValueError: an unknown key (named, with the known ones), a value of the wrong type, or
+            one the dataclass refuses (its message, after ``where``).
     """
     fields = _fields(cls)
+    if not all(isinstance(k, str) for k in data):
+        bad = next(k for k in data if not isinstance(k, str))
+        raise ValueError(f"{where}: config keys must be names, got {bad!r}")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(
@@ -79,7 +91,14 @@ def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "config") -> T
         )
     hints = typing.get_type_hints(cls)
     values = {k: _coerce(v, hints[k], k, where) for k, v in data.items()}
-    return cls(**values)
+    try:
+        return cls(**values)
+    except (ValueError, TypeError) as e:  # the dataclass's own checks (__post_init__)
+        try:
+            named = type(e)(f"{where}: {e}")
+        except TypeError:  # an exception type that takes other arguments
+            named = ValueError(f"{where}: {e}")
+        raise named from None
 
 
 def with_changes(config: T, changes: Mapping[str, Any], where: str = "overrides") -> T:

@@ -149,6 +149,31 @@ def test_download_unpacks_the_registry_subfolder_and_trusts_the_first_hash(
     assert _nothing_complete(home) and not (home / "tiny.zip").exists()
 
 
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        (b"<html>a web page, not an archive</html>", "neither a zip nor a tar archive"),
+        (_zip_bytes({"other-folder/a.bvh": b"x"}), "holds no folder"),
+        (_targz_bytes({"tiny/../../evil.bvh": b"x"}), "unsafe member"),
+    ],
+    ids=["not an archive", "no such folder", "unsafe member"],
+)
+def test_a_download_that_fails_its_checks_keeps_and_trusts_nothing(
+    home, tmp_path, monkeypatch, bad, words
+):
+    """Issue 27: the file:// of a page was kept and its SHA-256 recorded as trusted, so that
+    every later download of the real archive failed the hash check."""
+    src = tmp_path / "mirror.archive"
+    src.write_bytes(bad)
+    _register(monkeypatch, src.as_uri())
+    with pytest.raises(DownloadError, match=rf"{words}.*deleted .*recorded no SHA-256"):
+        download_corpus("tiny", progress=False)
+    assert not home.exists() or list(home.iterdir()) == []  # no archive, no record, no folder
+    src.write_bytes(ZIP)  # the real archive then downloads, and only now is its hash trusted
+    _assert_whole(download_corpus("tiny", progress=False))
+    assert (home / "tiny.sha256").read_text().split()[0] == hashlib.sha256(ZIP).hexdigest()
+
+
 def test_tar_gz_from_a_url_override(home, tmp_path, monkeypatch):
     src = tmp_path / "mirror.tar.gz"
     src.write_bytes(_targz_bytes({f"{MEMBER}/{k}": v for k, v in TAKES.items()}))

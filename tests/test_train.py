@@ -7,7 +7,7 @@ import pytest
 import torch
 from torch import nn
 
-from minimdm import checkpoint as ckpt_mod
+from minimdm import files
 from minimdm.amdm.losses import make_windows, window_loss
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.amdm.train import train_amdm
@@ -286,7 +286,7 @@ def test_interrupted_save_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
         f.write(data[: len(data) // 2])
         raise OSError("disk full")
 
-    monkeypatch.setattr(ckpt_mod, "_write", crash_mid_write)
+    monkeypatch.setattr(files, "_write", crash_mid_write)
     newer = MLPDenoiser(DenoiserConfig(D, D, width=16, depth=3, time_dim=8))
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(tmp_path, newer, {"step": 2}, optimizer_state={"step": 2})

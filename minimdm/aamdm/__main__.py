@@ -1,6 +1,9 @@
-"""``python -m minimdm.aamdm train CONFIG [--out DIR]``: train an AAMDM motion model."""
+"""``python -m minimdm.aamdm train CONFIG [--out DIR] [--ship]``: train a motion AAMDM
+(:func:`minimdm.cli.aamdm_main`, with the ``minimdm`` command's one error path)."""
 
-from minimdm.aamdm.motion_train import main
+import sys
+
+from minimdm.cli import aamdm_main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(aamdm_main())

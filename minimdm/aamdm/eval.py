@@ -30,6 +30,7 @@ from torch import Tensor
 from minimdm.aamdm.model import Guide
 from minimdm.aamdm.motion import AAMDMMotion
 from minimdm.amdm.sampling import Rollout, autoregress
+from minimdm.checkpoint import check_same_model
 from minimdm.diffusion import NoiseTape
 from minimdm.motion import metrics
 from minimdm.motion.features import StartPose, decode, start_pose_of
@@ -156,6 +157,8 @@ def rollout_aamdm(
     """
     if sampler is not None and (guide_scale > 0 or T_adm is not None):
         raise ValueError("guidance and T_adm need the eager step: pass sampler=None with them")
+    if sampler is not None:  # a graph exported from another model is refused
+        check_same_model("sampler", sampler, model, "aamdm_motion", "the AAMDM model given")
     if init_y.dim() != 2 or init_x.dim() != 2 or init_y.shape[0] != init_x.shape[0]:
         raise ValueError(
             f"init_y and init_x must be (C, D) and (C, {model.config.x_dim}), got "

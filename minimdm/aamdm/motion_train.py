@@ -3,14 +3,16 @@
 :func:`train_aamdm_motion` trains, in order, the autoencoder of the embedded space (eqs. 1-4), the
 polisher (Algorithm 1 lines 7-18, eqs. 7-9) and the DD-GAN (lines 19-25, eqs. 11-12) on the
 clips its config names (the Bandai-Namco training takes for the book's model), then writes one
-checkpoint. Reproduce the book's model with
+checkpoint. ``python -m minimdm.aamdm train`` runs it (:func:`minimdm.cli.aamdm_main`);
+reproduce the book's model with
 
-    python -m minimdm.aamdm train configs/aamdm.yaml      # -> checkpoints/aamdm/
+    python -m minimdm.aamdm train configs/aamdm.yaml --ship   # -> checkpoints/aamdm/
+
+(without ``--ship`` it writes to ``runs/aamdm/``).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from dataclasses import asdict, dataclass, field
@@ -32,8 +34,9 @@ from minimdm.aamdm.motion import (
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
 from minimdm.diffusion import data_range
+from minimdm.files import RunLock
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
-from minimdm.utils import num_threads
+from minimdm.validate import InputError, check_int, check_number, check_output_dir
 
 __all__ = [
     "AAMDMTrainConfig",
@@ -121,6 +124,24 @@ class AAMDMTrainConfig:
     config_file: str | None = None
     """The YAML file this config came from (set by load_train_config)."""
 
+    def __post_init__(self) -> None:
+        sizes = ("z_dim", "ae_width", "ae_depth", "ae_steps", "ae_batch", "T_gan", "latent_dim",
+                 "width", "depth", "disc_width", "window", "polish_steps", "polish_batch",
+                 "gan_steps", "gan_batch")  # fmt: skip
+        for name in sizes:
+            check_int(name, getattr(self, name), low=1)
+        check_int("T_adm", self.T_adm, low=0)
+        check_int("fourier", self.fourier, low=0)
+        if not self.horizons:
+            raise InputError("horizons must list at least one number of frames ahead, got []")
+        for i, h in enumerate(self.horizons):
+            check_int(f"horizons[{i}]", h, low=1)
+        check_number("fps", self.fps, low=1.0, high=1000.0)
+        for name in ("ae_lr", "polish_lr", "lr_g", "lr_d"):
+            check_number(name, getattr(self, name), low=0.0, low_open=True)
+        for name in ("w_val", "w_vel", "w_reg", "polish_w_vel", "r1_gamma"):
+            check_number(name, getattr(self, name), low=0.0)
+
 
 def load_train_config(path: str | Path) -> AAMDMTrainConfig:
     """Read a YAML or TOML file into an :class:`AAMDMTrainConfig`; unknown keys are an error."""
@@ -153,14 +174,29 @@ def _pairs(arrays: list[Tensor]) -> Tensor:
 
 
 def train_aamdm_motion(
-    config: AAMDMTrainConfig, out_dir: str | Path | None = None, progress: bool = True
+    config: AAMDMTrainConfig,
+    out_dir: str | Path | None = None,
+    progress: bool = True,
+    command: str | None = None,
 ) -> tuple[AAMDMMotion, dict]:
     """Train the autoencoder, then the polisher, then the DD-GAN (AAMDM §4 and Algorithm 1).
 
     Writes ``out_dir/model.safetensors`` and ``model.json`` (plus the GAN's resumable
-    ``model.train.safetensors``) when ``out_dir`` is given. Returns the model and a report of
-    the training times and final losses.
+    ``model.train.safetensors``) when ``out_dir`` is given, holding its run lock
+    (:class:`minimdm.files.RunLock`) meanwhile. ``command`` is recorded in the checkpoint
+    (default ``python -m minimdm.aamdm train CONFIG``). Returns the model and a report of the
+    training times and final losses.
     """
+    if out_dir is None:
+        return _train(config, None, progress, command)
+    out_dir = check_output_dir("out_dir", out_dir)
+    with RunLock(out_dir, command):  # one run per folder
+        return _train(config, out_dir, progress, command)
+
+
+def _train(
+    config: AAMDMTrainConfig, out_dir: Path | None, progress: bool, command: str | None
+) -> tuple[AAMDMMotion, dict]:
     from minimdm.amdm.losses import make_windows
 
     c = config
@@ -244,7 +280,7 @@ def train_aamdm_motion(
     meta = {
         "config": asdict(c),
         "config_file": c.config_file,
-        "command": f"python -m minimdm.aamdm train {c.config_file}",
+        "command": command or f"python -m minimdm.aamdm train {c.config_file}",
         "feature_layout": d["layout"],
         "skeleton": skeleton,
         "normalizer": norm,
@@ -293,19 +329,3 @@ def checkpoint_training_xz(ckpt: Any) -> Tensor:
 
 def _round(d: dict, keys: tuple[str, ...] | None = None) -> dict:
     return {k: round(float(v), 5) for k, v in d.items() if keys is None or k in keys}
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m minimdm.aamdm train CONFIG [--out DIR]``."""
-    p = argparse.ArgumentParser(prog="python -m minimdm.aamdm", description=__doc__.split("\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train", help="train a motion AAMDM from a YAML config")
-    t.add_argument("config")
-    t.add_argument("--out", default=None, help="checkpoint folder (default: checkpoints/NAME)")
-    t.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
-    args = p.parse_args(argv)
-    cfg = load_train_config(args.config)
-    out = args.out or f"checkpoints/{Path(args.config).stem}"
-    with num_threads(args.threads):
-        _, report = train_aamdm_motion(cfg, out)
-    print(json.dumps({"checkpoint": out, **report}))

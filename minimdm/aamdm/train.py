@@ -52,6 +52,7 @@ left untouched. A run resumes from its training state.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -68,6 +69,7 @@ from minimdm.aamdm.model import (
 )
 from minimdm.checkpoint import checkpoint_paths, load_train_state, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, q_sample
+from minimdm.files import RunLock
 from minimdm.nn import cosine_lr, ema_update, optimizer_step, set_lr
 
 __all__ = [
@@ -452,87 +454,90 @@ def train_ddgan(
             "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
             f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
         )
-    device = next(gan.parameters()).device
-    windows, schedule = windows.to(device), schedule.to(device)
-    gen = torch.Generator(device).manual_seed(config.seed)
-    opt_g = _optimizer(config.optimizer, gan.parameters(), config.lr_g, (0.5, 0.9))
-    opt_d = _optimizer(config.optimizer, disc.parameters(), config.lr_d, (0.5, 0.9))
-    bundle = bundle if bundle is not None else gan
-    step, last_good = 0, None
-    ema = {k: v.detach().clone() for k, v in gan.state_dict().items()}
-    if checkpoint is not None and resume and checkpoint_paths(checkpoint).train.exists():
-        _, state = load_train_state(checkpoint)
-        bundle.load_state_dict(state["bundle"])
-        gan.load_state_dict(state["gan_raw"])
-        ema = {k: v.to(device) for k, v in state["gan_ema"].items()}
-        disc.load_state_dict(state["disc"])
-        opt_g.load_state_dict(state["opt_g"])
-        opt_d.load_state_dict(state["opt_d"])
-        gen.set_state(state["generator"].to(torch.uint8))
-        step = last_good = int(state["step"])
+    folder = checkpoint_paths(checkpoint).weights.parent if checkpoint is not None else None
+    with RunLock(folder) if folder is not None else contextlib.nullcontext():  # one run
+        device = next(gan.parameters()).device
+        windows, schedule = windows.to(device), schedule.to(device)
+        gen = torch.Generator(device).manual_seed(config.seed)
+        opt_g = _optimizer(config.optimizer, gan.parameters(), config.lr_g, (0.5, 0.9))
+        opt_d = _optimizer(config.optimizer, disc.parameters(), config.lr_d, (0.5, 0.9))
+        bundle = bundle if bundle is not None else gan
+        step, last_good = 0, None
+        ema = {k: v.detach().clone() for k, v in gan.state_dict().items()}
+        if checkpoint is not None and resume and checkpoint_paths(checkpoint).train.exists():
+            _, state = load_train_state(checkpoint)
+            bundle.load_state_dict(state["bundle"])
+            gan.load_state_dict(state["gan_raw"])
+            ema = {k: v.to(device) for k, v in state["gan_ema"].items()}
+            disc.load_state_dict(state["disc"])
+            opt_g.load_state_dict(state["opt_g"])
+            opt_d.load_state_dict(state["opt_d"])
+            gen.set_state(state["generator"].to(torch.uint8))
+            step = last_good = int(state["step"])
 
-    def save(at: int) -> None:
-        raw = {k: v.detach().clone() for k, v in gan.state_dict().items()}
-        gan.load_state_dict(ema)  # the checkpoint samples with the averaged generator
-        state = {
-            "step": at,
-            "bundle": bundle.state_dict(),
-            "gan_raw": raw,
-            "gan_ema": ema,
-            "disc": disc.state_dict(),
-            "opt_g": opt_g.state_dict(),
-            "opt_d": opt_d.state_dict(),
-            "generator": gen.get_state(),
-        }
-        meta = {**(metadata or {}), "step": at, "gan_config": asdict(config)}
-        try:
-            save_checkpoint(checkpoint, bundle, meta, optimizer_state=state)
-        finally:
-            gan.load_state_dict(raw)
+        def save(at: int) -> None:
+            raw = {k: v.detach().clone() for k, v in gan.state_dict().items()}
+            gan.load_state_dict(ema)  # the checkpoint samples with the averaged generator
+            state = {
+                "step": at,
+                "bundle": bundle.state_dict(),
+                "gan_raw": raw,
+                "gan_ema": ema,
+                "disc": disc.state_dict(),
+                "opt_g": opt_g.state_dict(),
+                "opt_d": opt_d.state_dict(),
+                "generator": gen.get_state(),
+            }
+            meta = {**(metadata or {}), "step": at, "gan_config": asdict(config)}
+            try:
+                save_checkpoint(checkpoint, bundle, meta, optimizer_state=state)
+            finally:
+                gan.load_state_dict(raw)
 
-    history: list[dict] = []
-    gan.train()
-    disc.train()
-    t0 = time.perf_counter()
-    while step < config.steps:
-        for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
-            set_lr(opt, cosine_lr(step, config.steps, lr, lr * config.lr_end))
-        w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
-        p = draw_gan_pairs(gan, schedule, w, T_gan, gen, config.pairs, polisher, T_adm)
-        k, cond, x_prev_real, x_t, x_prev_fake = p.k, p.cond, p.x_prev_real, p.x_t, p.x_prev_fake
-        loss_d, info = discriminator_loss(
-            disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
-        )
-        if torch.isfinite(loss_d):  # alternate: step D, then G against the updated D
-            optimizer_step(opt_d, loss_d, list(disc.parameters()), config.grad_clip)
-            loss_g = generator_loss(disc, x_prev_fake, x_t, cond, k)
-        else:
-            loss_g = torch.full((), float("nan"))
-        info["loss_g"] = loss_g.item()
-        if not (torch.isfinite(loss_d) and torch.isfinite(loss_g)):
-            where = (
-                f"the last good checkpoint (step {last_good}) is kept at "
-                f"{checkpoint_paths(checkpoint).weights}"
-                if checkpoint is not None and last_good is not None
-                else "no checkpoint was written (pass checkpoint= to keep one)"
+        history: list[dict] = []
+        gan.train()
+        disc.train()
+        t0 = time.perf_counter()
+        while step < config.steps:
+            for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
+                set_lr(opt, cosine_lr(step, config.steps, lr, lr * config.lr_end))
+            w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
+            p = draw_gan_pairs(gan, schedule, w, T_gan, gen, config.pairs, polisher, T_adm)
+            k, cond, x_t = p.k, p.cond, p.x_t
+            x_prev_real, x_prev_fake = p.x_prev_real, p.x_prev_fake
+            loss_d, info = discriminator_loss(
+                disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
             )
-            raise GANDivergedError(
-                f"DD-GAN training diverged at step {step + 1}: loss_D = {loss_d.item()}, "
-                f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
-            )
-        optimizer_step(opt_g, loss_g, list(gan.parameters()), config.grad_clip, only_these=True)
-        ema_update(ema, gan, config.ema_decay, step)
-        step += 1
-        record = {"step": step, **info, "seconds": time.perf_counter() - t0}
-        history.append(record)
-        if checkpoint is not None and (
-            step == config.steps or (config.ckpt_interval and step % config.ckpt_interval == 0)
-        ):
-            save(step)
-            last_good = step
-        if callback is not None:
-            callback(step, {**record, "ema": ema})
-    gan.load_state_dict(ema)
-    gan.eval()
-    disc.eval()
-    return history
+            if torch.isfinite(loss_d):  # alternate: step D, then G against the updated D
+                optimizer_step(opt_d, loss_d, list(disc.parameters()), config.grad_clip)
+                loss_g = generator_loss(disc, x_prev_fake, x_t, cond, k)
+            else:
+                loss_g = torch.full((), float("nan"))
+            info["loss_g"] = loss_g.item()
+            if not (torch.isfinite(loss_d) and torch.isfinite(loss_g)):
+                where = (
+                    f"the last good checkpoint (step {last_good}) is kept at "
+                    f"{checkpoint_paths(checkpoint).weights}"
+                    if checkpoint is not None and last_good is not None
+                    else "no checkpoint was written (pass checkpoint= to keep one)"
+                )
+                raise GANDivergedError(
+                    f"DD-GAN training diverged at step {step + 1}: loss_D = {loss_d.item()}, "
+                    f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
+                )
+            optimizer_step(opt_g, loss_g, list(gan.parameters()), config.grad_clip, only_these=True)
+            ema_update(ema, gan, config.ema_decay, step)
+            step += 1
+            record = {"step": step, **info, "seconds": time.perf_counter() - t0}
+            history.append(record)
+            if checkpoint is not None and (
+                step == config.steps or (config.ckpt_interval and step % config.ckpt_interval == 0)
+            ):
+                save(step)
+                last_good = step
+            if callback is not None:
+                callback(step, {**record, "ema": ema})
+        gan.load_state_dict(ema)
+        gan.eval()
+        disc.eval()
+        return history

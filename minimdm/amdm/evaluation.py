@@ -48,6 +48,7 @@ __all__ = [
     "checkpoint_clips",
     "initial_state",
     "random_states",
+    "available_states",
     "continuation_states",
     "evaluate",
     "dataset_row",
@@ -215,12 +216,23 @@ def initial_state(
     return _state(c, encode(c), max(1, frame), ref_frames)
 
 
+def _state_pool(dataset: MotionDataset, ref_frames: int) -> list[tuple[Any, int]]:
+    """Every (clip, frame) that can start an evaluation: ``ref_frames`` frames follow it."""
+    return [(c, f) for c in dataset for f in range(1, c.n_frames - ref_frames)]
+
+
+def available_states(ckpt: Checkpoint, protocol: Protocol | None = None) -> int:
+    """How many initial states :func:`table1` can draw for ``ckpt`` (its ``n_states`` limit)."""
+    protocol = protocol or Protocol()
+    return len(_state_pool(_start_clips(ckpt, protocol), protocol.ade_frames))
+
+
 def random_states(
     dataset: MotionDataset, n: int, ref_frames: int = 60, seed: int = 0
 ) -> list[InitialState]:
     """``n`` initial states drawn uniformly over every frame that has ``ref_frames`` after it."""
     feats = {c.name: encode(c) for c in dataset}
-    pool = [(c, f) for c in dataset for f in range(1, c.n_frames - ref_frames)]
+    pool = _state_pool(dataset, ref_frames)
     if len(pool) < n:
         raise ValueError(f"n must be <= {len(pool)} (frames with {ref_frames} after them), got {n}")
     pick = np.random.default_rng(seed).choice(len(pool), size=n, replace=False)

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
-from minimdm.checkpoint import Checkpoint, load_checkpoint
+from minimdm.checkpoint import Checkpoint, check_same_model, load_checkpoint, model_spec
 from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, clip_bounds, ddim_sample, ddpm_sample
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
@@ -363,6 +363,10 @@ def rollout(
         )
     dev = device if device is not None else next(model.parameters()).device
     check_generator("generator", generator, dev)
+    if sampler is not None:  # a graph exported from another checkpoint is refused
+        where = str(ckpt.paths.weights) if ckpt is not None else f"a {type(model).__name__}"
+        kind = ckpt.kind if ckpt is not None else model_spec(model)["kind"]
+        check_same_model("sampler", sampler, model, kind, where)
     model = model.to(dev).eval()
     predicts = model.predicts if isinstance(model, MLPDenoiser) else "eps"
     layout = skeleton = None

@@ -74,6 +74,7 @@ from minimdm.diffusion import (
     clip_bounds,
     data_range,
 )
+from minimdm.files import RunLock, atomic_write
 from minimdm.nn import ema_update, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
 from minimdm.validate import InputError, InputTypeError, check_output_dir, describe
@@ -203,7 +204,7 @@ def train_amdm(
     if not isinstance(config, TrainConfig):
         raise InputTypeError(f"config must be a TrainConfig, got {describe(config)}")
     out_dir = check_output_dir("out_dir", out_dir)  # before any data is loaded or step taken
-    with threads(num_threads):
+    with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         args = (normalizer, skeleton, layout, resume, progress, eval_fn, callback, metadata)
         return _train(config, out_dir, features, *args)
 
@@ -342,7 +343,7 @@ def _train(
     out_dir.mkdir(parents=True, exist_ok=True)
     if log_path.exists() and world.is_main:  # drop records past the resumed step
         keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
-        log_path.write_text("".join(ln + "\n" for ln in keep))
+        atomic_write(log_path, "".join(ln + "\n" for ln in keep))
     history: list[dict] = []
 
     def log(record: dict) -> None:

@@ -33,11 +33,12 @@ from minimdm.checkpoint import (
     register_model_kind,
     save_checkpoint,
 )
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import Normalizer, encode_motion
 from minimdm.motion.skeleton import Skeleton, forward_kinematics
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
-from minimdm.validate import InputError, check_output_dir
+from minimdm.validate import InputError, check_int, check_number, check_output_dir
 
 from .data import _split, world_frames
 
@@ -85,6 +86,13 @@ class ClassifierConfig:
     """Contents of the takes (None: locomotion, as CAMDM's)."""
     config_file: str | None = None
     """The file this config came from."""
+
+    def __post_init__(self) -> None:
+        for name in ("window", "width", "feature_dim", "steps", "batch_size", "eval_stride"):
+            check_int(name, getattr(self, name), low=2 if name == "window" else 1)
+        check_number("dropout", self.dropout, low=0.0, high=0.99)
+        check_number("lr", self.lr, low=0.0, low_open=True)
+        check_number("fps", self.fps, low=1.0, high=1000.0)
 
 
 def load_classifier_config(path: str | os.PathLike) -> ClassifierConfig:
@@ -172,7 +180,7 @@ def train_classifier(
     from .train import load_clips
 
     out_dir = Path(check_output_dir("out_dir", out_dir))
-    with threads(num_threads):
+    with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         train = load_clips(config.corpus, "train", config.fps, config.contents)
         test = load_clips(config.corpus, "test", config.fps, config.contents)
         styles = sorted({c.labels["style"] for c in train})
@@ -199,7 +207,7 @@ def train_classifier(
         gen = torch.Generator().manual_seed(config.seed)
         log_path = out_dir / "log.jsonl"
         out_dir.mkdir(parents=True, exist_ok=True)
-        log_path.write_text("")
+        atomic_write(log_path, "")
         t0 = time.perf_counter()
 
         def accuracy() -> float:

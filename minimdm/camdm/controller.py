@@ -47,13 +47,14 @@ import torch
 from torch import Tensor
 
 from minimdm.amdm.sampling import autoregress
-from minimdm.checkpoint import Checkpoint
+from minimdm.checkpoint import Checkpoint, check_same_model
 from minimdm.diffusion import NoiseTape
 from minimdm.motion.data import Clip
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton, wrap_angle
 from minimdm.utils import num_threads
 from minimdm.validate import (
+    MAX_FEATURE,
     InputError,
     InputTypeError,
     check_generator,
@@ -216,6 +217,8 @@ class CAMDMController:
                    ("P", "F", "D", "guide")}}  # fmt: skip
             if got != want:
                 raise InputError(f"planner must be a CAMDM planning call with {want}, got {got}")
+        where = str(self.checkpoint.paths.weights)
+        check_same_model("planner", planner, self.model, "camdm", where)
         return planner
 
     # ---------------------------------------------------------------- one planning call
@@ -307,6 +310,12 @@ class CAMDMController:
             raise InputError(
                 f"{name} must be finite (shape (B, {shape[0]}, {shape[1]})), but {name}{where} is "
                 f"{x[tuple(where)].item()}"
+            )
+        if (x.abs() > MAX_FEATURE).any():  # metres and 6D components: beyond it, not motion
+            where = (x.abs() > MAX_FEATURE).nonzero()[0].tolist()
+            raise InputError(
+                f"{name} must hold values within ±{MAX_FEATURE:g} (metres, rotation components), "
+                f"but {name}{where} is {x[tuple(where)].item():.3g}"
             )
         return x.float()
 

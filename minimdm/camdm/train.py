@@ -18,7 +18,8 @@ replaced by the learned null with probability ``p_drop_past`` (0.15, for eq. 5),
 null style with ``p_drop_style`` (for the rejected CFG-S). All randomness comes from one
 generator seeded by ``seed``; a run resumed from its training state continues bit for bit.
 
-``minimdm camdm train configs/camdm.yaml`` runs it from the command line.
+``minimdm camdm train configs/camdm.yaml`` runs it from the command line (into ``runs/camdm/``;
+``--ship`` replaces the shipped ``checkpoints/camdm/``).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from minimdm.amdm.train import read_log
 from minimdm.checkpoint import (
     Checkpoint,
     CheckpointMismatchError,
@@ -44,6 +46,7 @@ from minimdm.checkpoint import (
     save_checkpoint,
 )
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton
 from minimdm.nn import cosine_lr, ema_update, optimizer_step, set_lr
@@ -225,7 +228,7 @@ def train_camdm(
     """Train CAMDM; the checkpoint (EMA weights), its training state and ``log.jsonl`` go to
     ``out_dir``. ``data`` replaces the corpus (tests pass tiny windows)."""
     out_dir = check_output_dir("out_dir", out_dir)
-    with threads(num_threads):
+    with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         return _train(config, Path(out_dir), data, resume, progress, metadata or {})
 
 
@@ -291,13 +294,9 @@ def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
 
     log_path = out_dir / "log.jsonl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    if log_path.exists():  # drop records past the resumed step
-        keep = [
-            ln
-            for ln in log_path.read_text().splitlines()
-            if ln.strip() and json.loads(ln)["step"] <= step
-        ]
-        log_path.write_text("".join(ln + "\n" for ln in keep))
+    if log_path.exists():  # drop records past the resumed step (and a line torn by a kill)
+        keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
+        atomic_write(log_path, "".join(ln + "\n" for ln in keep))
 
     def log(rec: dict) -> None:
         with open(log_path, "a") as f:

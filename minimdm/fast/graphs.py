@@ -36,7 +36,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from minimdm.checkpoint import Checkpoint
+from minimdm.checkpoint import Checkpoint, fingerprint
 from minimdm.diffusion import NoiseTape, ddim_timesteps
 from minimdm.validate import InputError
 
@@ -65,6 +65,8 @@ class Port(NamedTuple):
     what: str = ""
     dtype: str = "float32"
     """'float32' or 'int64' (indices)."""
+    classes: int | None = None
+    """For indices: how many there are (valid indices are 0..classes-1)."""
 
 
 class FrameGraph(nn.Module):
@@ -220,6 +222,7 @@ def _settings(ckpt: Checkpoint) -> dict[str, Any]:
             "command": ckpt.metadata.get("command"),
             "step": ckpt.metadata.get("step"),
             "minimdm_version": ckpt.metadata.get("minimdm_version"),
+            "fingerprint": fingerprint(ckpt.model),  # rollouts compare it with their model
         },
     }
 
@@ -443,7 +446,8 @@ class CAMDMPlan(FrameGraph):
         P, F, D = L.past, L.future, L.dim
         return (
             Port("past", (P, D), f"the last P = {P} frames, in the frame of the last one"),
-            Port("style", (), f"the style's index in styles (0..{len(L.styles) - 1})", "int64"),
+            Port("style", (), f"the style's index in styles (0..{len(L.styles) - 1})", "int64",
+                 len(L.styles)),
             Port("trajectory", (F, 4), "the future trajectory: x, y, cos, sin per future frame"),
         ) + (() if self.guide == "none" else (
             Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)"),

@@ -40,7 +40,8 @@ import torch
 from torch import Tensor
 
 from minimdm._version import __version__
-from minimdm.validate import InputError, InputTypeError
+from minimdm.files import atomic_write
+from minimdm.validate import MAX_FEATURE, InputError, InputTypeError, check_int, describe
 
 from .graphs import FrameGraph
 
@@ -104,11 +105,15 @@ def _port(p, batch: int | str) -> dict[str, Any]:
         d["what"] = p.what
     if p.dtype != "float32":
         d["dtype"] = p.dtype
+    if p.classes is not None:
+        d["classes"] = p.classes
     return d
 
 
 WEIGHTS = ("fp32", "int8")
 """The weight formats :func:`export_onnx` writes."""
+MAX_BATCH = 1 << 16
+"""The largest fixed batch :func:`export_onnx` traces."""
 
 
 def export_onnx(
@@ -132,6 +137,11 @@ def export_onnx(
     """
     if weights not in WEIGHTS:
         raise InputError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
+    if not isinstance(graph, FrameGraph):
+        raise InputTypeError(f"graph must be a FrameGraph (minimdm.fast.frame_graph), got "
+                             f"{describe(graph)}")  # fmt: skip
+    if batch is not None:  # 0 would divide by zero inside the exporter (SIGFPE)
+        batch = check_int("batch", batch, low=1, high=MAX_BATCH)
     graph = graph.eval()
     args = graph.example_inputs(batch=1 if batch is None else int(batch))
     names = [*(p.name for p in graph.inputs()), "noise"]
@@ -167,7 +177,7 @@ def export_onnx(
     model.producer_name, model.producer_version = "minimdm", __version__
     data = model.SerializeToString()
     if path is not None:
-        _atomic_write(Path(path), data)
+        atomic_write(path, data)
     return data
 
 
@@ -242,23 +252,6 @@ def _keep_used(g, nodes: list) -> None:
     g.initializer.extend(keep)
 
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o666 & ~umask)  # an ordinary file's mode, not mkstemp's 0600
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def read_metadata(model: str | os.PathLike | bytes) -> dict[str, Any]:
     """The JSON metadata of an exported frame graph (a path or the model's bytes).
 
@@ -323,6 +316,8 @@ class FastFrame:
         self.shapes: dict[str, tuple[int, ...]] = {i["name"]: tuple(i["shape"][1:]) for i in ins}
         """Each input's shape after the batch."""
         self.dtypes: dict[str, str] = {i["name"]: i.get("dtype", "float32") for i in ins}
+        self.classes: dict[str, int] = {i["name"]: i["classes"] for i in ins if "classes" in i}
+        """Integer inputs' numbers of classes (CAMDM's style): indices lie in [0, classes)."""
         self.noise_widths = tuple(ins[-1]["widths"])
         self.kind = self.metadata["kind"]
 
@@ -338,6 +333,8 @@ class FastFrame:
         return NoiseTape.draw(self.noise_widths, batch, generator)
 
     def _array(self, name: str, x: Any, batch: int | None) -> np.ndarray:
+        """The input ``name`` as a contiguous array, checked as the eager step checks it: its
+        shape, integer indices within their range, floats finite and within ±MAX_FEATURE."""
         if not isinstance(x, (Tensor, np.ndarray)):
             raise InputTypeError(f"{name} must be a tensor, got {type(x).__name__}")
         a = x.detach().cpu().numpy() if isinstance(x, Tensor) else x
@@ -349,10 +346,22 @@ class FastFrame:
         if self.dtypes[name] == "int64":
             if not np.issubdtype(a.dtype, np.integer):
                 raise InputTypeError(f"{name} must hold integers (indices), got {a.dtype}")
+            n = self.classes.get(name)
+            if n is not None and a.size and not (0 <= a.min() and a.max() < n):
+                bad = int(a.flat[np.flatnonzero((a < 0) | (a >= n))[0]])
+                raise InputError(f"{name} must hold indices in [0, {n - 1}], got {bad}")
             return np.ascontiguousarray(a.astype(np.int64, copy=False))
+        if a.dtype == np.bool_ or not np.issubdtype(a.dtype, np.number):
+            raise InputTypeError(f"{name} must hold numbers, got {a.dtype}")
         a = a.astype(np.float32, copy=False)
         if not np.isfinite(a).all():
             raise InputError(f"{name} must be finite, but it holds NaN/Inf")
+        if a.size and np.abs(a).max() > MAX_FEATURE:
+            where = np.unravel_index(int(np.argmax(np.abs(a))), a.shape)
+            raise InputError(
+                f"{name} must hold values within ±{MAX_FEATURE:g} (as the eager step checks), "
+                f"but {name}{list(map(int, where))} is {float(a[where]):.3g}"
+            )
         return np.ascontiguousarray(a)
 
     def __call__(

@@ -22,16 +22,21 @@ A malformed file raises :class:`BVHError` naming the file and the line.
 
 from __future__ import annotations
 
+import codecs
+import contextlib
+import io
 import math
 import os
 import re
-import tempfile
+import stat
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from minimdm.files import atomic_write
 from minimdm.utils import num_threads
 from minimdm.validate import InputTypeError, check_number, describe, skeleton_difference
 
@@ -61,24 +66,41 @@ _POS = {"xposition": 0, "yposition": 1, "zposition": 2}
 _ROT = {"xrotation": "X", "yrotation": "Y", "zrotation": "Z"}
 
 
-def _parse_bvh(text: str, src: str):
-    """Hierarchy and motion of a BVH file; raises :class:`BVHError` naming the line."""
-    lines = text.splitlines()
-    if not text.strip():
-        raise BVHError(f"{src}:1: expected HIERARCHY, got an empty file")
+def _tokens(lines: Iterator[tuple[int, str]], src: str) -> tuple[list[tuple[str, int]], int]:
+    """The hierarchy's words with their lines, up to the MOTION line (its number returned);
+    a hierarchy of more than :data:`MAX_TOKENS` words is refused before it fills memory."""
     toks: list[tuple[str, int]] = []
-    motion_line = None
-    for ln, line in enumerate(lines, start=1):
+    for ln, line in lines:
         words = line.replace("{", " { ").replace("}", " } ").split()
         if words and words[0].upper() == "MOTION":
-            motion_line = ln
-            break
+            return toks, ln
         toks += [(w, ln) for w in words]
+        if len(toks) > MAX_TOKENS:
+            raise BVHError(
+                f"{src}:{ln}: expected MOTION within {MAX_TOKENS} words of hierarchy (a "
+                f"skeleton of at most {MAX_JOINTS} joints), got more"
+            )
+    if not toks:
+        raise BVHError(f"{src}:1: expected HIERARCHY, got an empty file")
+    return toks, -1
+
+
+def _parse_bvh(lines: Iterator[tuple[int, str]], src: str, size: int, fps: float | None):
+    """Hierarchy and motion of a BVH file's numbered lines (``size`` bytes); raises
+    :class:`BVHError` naming the line.
+
+    The motion is read line by line into one array allocated once the header has said its
+    size, and that size is checked first: at most :data:`MAX_FRAMES` frames (also after
+    resampling to ``fps``), :data:`MAX_VALUES` numbers, and no more than the file's bytes can
+    hold. So memory stays a small multiple of the file, and a file that is too large is refused
+    before it is parsed."""
+    toks, motion_line = _tokens(lines, src)
+    last_line = toks[-1][1] if toks else 1
     pos = 0
 
     def err(expected: str, tok: tuple[str, int] | None = None) -> BVHError:
         if tok is None:
-            at = motion_line or len(lines)
+            at = motion_line if motion_line > 0 else last_line
             return BVHError(f"{src}:{at}: expected {expected}, got end of hierarchy")
         return BVHError(f"{src}:{tok[1]}: expected {expected}, got {tok[0]!r}")
 
@@ -107,8 +129,13 @@ def _parse_bvh(text: str, src: str):
     offsets: list[list[float]] = []
     channels: list[list[str]] = []
 
-    def joint(parent: int, root: bool) -> None:
+    def joint(parent: int, root: bool, depth: int = 0) -> None:
         name, ln = take("a joint name", lambda w: w not in "{}")
+        if len(names) >= MAX_JOINTS or depth >= MAX_DEPTH:
+            raise BVHError(
+                f"{src}:{ln}: expected a skeleton of at most {MAX_JOINTS} joints nested at most "
+                f"{MAX_DEPTH} deep, got more"
+            )
         if name in names:
             raise BVHError(f"{src}:{ln}: joint name {name!r} is used twice; names must be unique")
         j = len(names)
@@ -136,7 +163,7 @@ def _parse_bvh(text: str, src: str):
             if key == "}":
                 return
             if key == "JOINT":
-                joint(j, False)
+                joint(j, False, depth + 1)
             elif key == "END":
                 take("Site", lambda w: w.upper() == "SITE")
                 take("'{'", lambda w: w == "{")
@@ -151,62 +178,81 @@ def _parse_bvh(text: str, src: str):
     joint(-1, True)
     if pos < len(toks):
         raise err("MOTION", toks[pos])
-    if motion_line is None:
-        raise BVHError(f"{src}:{len(lines)}: expected MOTION, got end of file")
+    if motion_line < 0:
+        raise BVHError(f"{src}:{last_line}: expected MOTION, got end of file")
 
-    def header(ln: int, label: str) -> str:
-        if ln > len(lines):
-            raise BVHError(f"{src}:{ln}: expected '{label} ...', got end of file")
-        line = lines[ln - 1].strip()
+    def header(label: str) -> tuple[int, str]:
+        ln, line = next(lines, (None, None))
+        if ln is None:
+            raise BVHError(f"{src}:{last_line + 1}: expected '{label} ...', got end of file")
+        line = line.strip()
         if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "")):
-            raise BVHError(f"{src}:{ln}: expected '{label} ...', got {line!r}")
-        return line.split(":", 1)[-1].strip()
+            raise BVHError(f"{src}:{ln}: expected '{label} ...', got {line[:80]!r}")
+        return ln, line.split(":", 1)[-1].strip()
 
-    value = header(motion_line + 1, "Frames:")
+    frames_line, value = header("Frames:")
     try:
         n_frames = int(value)
     except ValueError:
         raise BVHError(
-            f"{src}:{motion_line + 1}: expected 'Frames: <integer>', got {value!r}"
+            f"{src}:{frames_line}: expected 'Frames: <integer>', got {value!r}"
         ) from None
-    value = header(motion_line + 2, "Frame Time:")
+    ln, value = header("Frame Time:")
     try:
         frame_time = float(value)
     except ValueError:
-        raise BVHError(
-            f"{src}:{motion_line + 2}: expected 'Frame Time: <seconds>', got {value!r}"
-        ) from None
+        raise BVHError(f"{src}:{ln}: expected 'Frame Time: <seconds>', got {value!r}") from None
     if not frame_time > 0:
-        raise BVHError(f"{src}:{motion_line + 2}: expected a Frame Time > 0, got {frame_time}")
-    n_chan = sum(len(c) for c in channels)
-    first = motion_line + 3  # 1-based line of the first frame
-    rows = [ln.split() for ln in lines[first - 1 : first - 1 + n_frames]]
-    if len(rows) < n_frames:
+        raise BVHError(f"{src}:{ln}: expected a Frame Time > 0, got {frame_time}")
+    if not MIN_FPS <= 1.0 / frame_time <= MAX_FPS:
         raise BVHError(
-            f"{src}:{len(lines)}: expected {n_frames} frames (as line {motion_line + 1} says), "
-            f"got {len(rows)}"
+            f"{src}: Frame Time {frame_time:g} s means {1.0 / frame_time:.3g} frames per second; "
+            f"expected {MIN_FPS:g} to {MAX_FPS:g} (1 / Frame Time)"
         )
-    for i, r in enumerate(rows):
-        if len(r) != n_chan:
-            raise BVHError(f"{src}:{first + i}: expected {n_chan} channel values, got {len(r)}")
-    for i, extra in enumerate(lines[first - 1 + n_frames :]):
-        if extra.strip():
+    n_chan = sum(len(c) for c in channels)
+    if n_frames < 1:
+        raise BVHError(f"{src}:{frames_line}: expected at least one frame, got {n_frames}")
+    if n_frames > MAX_FRAMES or (
+        fps is not None and _n_samples((n_frames - 1) * frame_time, fps) > MAX_FRAMES
+    ):
+        at = "" if fps is None else f" resampled to {fps:g} Hz"
+        raise BVHError(
+            f"{src}:{frames_line}: {n_frames} frames of {frame_time:g} s{at} would make more "
+            f"than {MAX_FRAMES} frames"
+        )
+    if n_frames * n_chan > MAX_VALUES:
+        raise BVHError(
+            f"{src}:{frames_line}: {n_frames} frames of {n_chan} channels are "
+            f"{n_frames * n_chan} numbers, more than the {MAX_VALUES} this loader reads from one "
+            "file; split the take"
+        )
+    if 2 * n_frames * n_chan > size:  # a number takes at least a digit and a separator
+        raise BVHError(
+            f"{src}:{frames_line}: expected {n_frames} frames (as line {frames_line} says) of "
+            f"{n_chan} numbers, but the file's {size} bytes cannot hold them"
+        )
+    first = ln + 1  # the line of the first frame
+    motion = np.empty((n_frames, n_chan))
+    for i in range(n_frames):
+        ln, line = next(lines, (None, None))
+        if ln is None:
             raise BVHError(
-                f"{src}:{first + n_frames + i}: expected end of file after {n_frames} frames"
+                f"{src}:{first + i - 1}: expected {n_frames} frames (as line {frames_line} "
+                f"says), got {i}"
             )
-    try:
-        motion = np.array(rows, dtype=np.float64).reshape(n_frames, n_chan)
-    except ValueError:
-        for i, r in enumerate(rows):
-            for w in r:
-                try:
-                    float(w)
-                except ValueError:
-                    raise BVHError(f"{src}:{first + i}: expected a number, got {w!r}") from None
-        raise
-    if not np.isfinite(motion).all():
-        i = int(np.argwhere(~np.isfinite(motion))[0, 0])
-        raise BVHError(f"{src}:{first + i}: frame {i} holds NaN/Inf")
+        words = line.split()
+        if len(words) != n_chan:
+            raise BVHError(f"{src}:{ln}: expected {n_chan} channel values, got {len(words)}")
+        try:
+            motion[i] = [float(w) for w in words]
+        except ValueError:
+            bad = next(w for w in words if not _is_float(w))
+            raise BVHError(f"{src}:{ln}: expected a number, got {bad!r}") from None
+        if not np.isfinite(motion[i]).all():
+            raise BVHError(f"{src}:{ln}: frame {i} holds NaN/Inf")
+    for ln, extra in lines:
+        if extra.strip():
+            raise BVHError(f"{src}:{ln}: expected end of file after {n_frames} frames")
     return names, parents, np.array(offsets), channels, frame_time, motion
 
 
@@ -249,15 +295,68 @@ HUMAN_EXTENT = (1.2, 2.0)
 """Metres: the typical vertical extent of a standing human's joints (ankles to head joint)."""
 
 
-def _read_text(path: Path) -> str:
-    """The file's text: UTF-8 (a byte-order mark is dropped), else Latin-1 (old exporters)."""
-    data = path.read_bytes()
-    if b"\x00" in data[:4096]:
-        raise BVHError(f"{path}: not a text file (it holds NUL bytes)")
+_BLOCK = 4096
+"""Frames converted at a time after parsing (bounds the temporaries of long takes)."""
+MAX_BVH_BYTES = 1 << 30
+"""The largest BVH file :func:`load_bvh` reads (1 GiB)."""
+MAX_VALUES = 1 << 26
+"""The most numbers one file's motion may hold (frames x channels; 512 MB as float64)."""
+MAX_JOINTS, MAX_DEPTH = 1024, 256
+"""The most joints a skeleton may have, and how deep they may nest."""
+MAX_TOKENS = 64 * MAX_JOINTS
+"""The most words a hierarchy may hold (a joint takes about 15)."""
+
+
+def _is_float(word: str) -> bool:
     try:
-        return data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        return data.decode("latin-1")
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def _numbered_lines(path: Path) -> Iterator[tuple[Iterator[tuple[int, str]], int]]:
+    """The file's lines, numbered from 1, read as they are parsed, and its size in bytes.
+
+    Only a regular file is read: a device (``/dev/zero``), a FIFO or a socket, also behind a
+    ``.bvh`` symlink, is refused without reading a byte (opening does not block on a FIFO), and
+    so is a file larger than :data:`MAX_BVH_BYTES`. The text is UTF-8 (a byte-order mark is
+    dropped), else Latin-1 (old exporters)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            what = "a folder" if stat.S_ISDIR(st.st_mode) else "a device, FIFO or socket"
+            raise BVHError(f"{path}: not a regular file ({what}); expected a BVH text file")
+        if st.st_size > MAX_BVH_BYTES:
+            raise BVHError(
+                f"{path}: {st.st_size} bytes, more than the {MAX_BVH_BYTES} bytes this loader "
+                "reads from one file; split the take"
+            )
+        f = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    size = st.st_size
+    with f:
+        if b"\x00" in f.read(4096):
+            raise BVHError(f"{path}: not a text file (it holds NUL bytes)")
+        f.seek(0)
+        decoder = codecs.getincrementaldecoder("utf-8")()
+        encoding = "utf-8-sig"
+        try:  # decided before parsing, block by block, so that nothing is parsed twice
+            for block in iter(lambda: f.read(1 << 20), b""):
+                decoder.decode(block)
+            decoder.decode(b"", final=True)
+        except UnicodeDecodeError:
+            encoding = "latin-1"
+        f.seek(0)
+        text = io.TextIOWrapper(f, encoding=encoding, newline=None)
+        try:
+            yield enumerate((line.rstrip("\n") for line in text), start=1), size
+        finally:
+            text.detach()
 
 
 def _local_transforms(channels, offsets, motion) -> tuple[np.ndarray, torch.Tensor]:
@@ -361,21 +460,11 @@ def _load_one_bvh(
     path: Path, fps: float | None, scale: float | None, name: str
 ) -> tuple[Clip, float]:
     """The clip of one file and the scale it used (given or guessed)."""
-    names, parents, offsets, channels, frame_time, motion = _parse_bvh(_read_text(path), str(path))
-    if not MIN_FPS <= 1.0 / frame_time <= MAX_FPS:
-        raise BVHError(
-            f"{path}: Frame Time {frame_time:g} s means {1.0 / frame_time:.3g} frames per second; "
-            f"expected {MIN_FPS:g} to {MAX_FPS:g} (1 / Frame Time)"
-        )
-    F = motion.shape[0]
-    if F < 1:
-        raise BVHError(f"{path}: expected at least one frame")
-    if fps is not None and _n_samples((F - 1) * frame_time, fps) > MAX_FRAMES:
-        raise BVHError(
-            f"{path}: {F} frames of {frame_time:g} s resampled to {fps:g} Hz would make more "
-            f"than {MAX_FRAMES} frames"
-        )
+    with _numbered_lines(path) as (lines, size):
+        parsed = _parse_bvh(lines, str(path), size, fps)
+    names, parents, offsets, channels, frame_time, motion = parsed
     trans, rot = _local_transforms(channels, offsets, motion)
+    del parsed, motion  # long takes: only what is still needed stays in memory
     names, parents, trans, rot, kept = _fold_root(names, parents, channels, trans, rot)
     J = len(names)
     for j in range(1, J):
@@ -401,8 +490,10 @@ def _load_one_bvh(
         lateral_axis=_guess_lateral_axis(names, parents, rest),
     )
     root = trans[:, 0] @ BVH_TO_WORLD.T * scale
-    quats = matrix_to_quat(C @ rot @ C.T)
-    clip = Clip(name, 1.0 / frame_time, skeleton, root, quats.numpy())
+    # frame by frame, in blocks: the conversion's temporaries stay small for long takes
+    quats = torch.cat([matrix_to_quat(C @ r @ C.T) for r in rot.split(_BLOCK)]).numpy()
+    del rot, trans
+    clip = Clip(name, 1.0 / frame_time, skeleton, root, quats)
     return (clip if fps is None else resample_clip(clip, fps)), float(scale)
 
 
@@ -503,12 +594,4 @@ def save_bvh(path: str | Path, clip: Clip, scale: float = 1.0) -> None:
     data = np.concatenate([root, eul.reshape(clip.n_frames, -1)], axis=1)
     out += ["MOTION", f"Frames: {clip.n_frames}", f"Frame Time: {1.0 / clip.fps:.8f}"]
     out += [" ".join(f"{v:.6f}" for v in row) for row in data]
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".bvh.tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(out) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, "\n".join(out) + "\n")

@@ -22,6 +22,8 @@ import urllib.parse
 from dataclasses import dataclass
 from pathlib import Path
 
+from minimdm.files import atomic_write
+
 from .bvh import load_bvh
 from .data import Clip, MotionDataset
 from .download import DONE, DownloadError, fetch, unpack
@@ -187,7 +189,8 @@ def download_corpus(
 
     The archive's size and SHA-256 are checked when :data:`CORPORA` records them. When it does
     not (None: unknown), the SHA-256 of what arrived is printed and recorded in
-    ``data_home()/NAME.sha256``; later downloads must match it (trust on first use; delete that
+    ``data_home()/NAME.sha256`` once the archive has unpacked; later downloads must match it
+    (trust on first use; delete that
     file to accept a new upstream version).
 
     Args:
@@ -226,10 +229,14 @@ def download_corpus(
                 "file if upstream changed)"
             ) from None
         raise
-    if info.sha256 is None and trusted is None:
-        record.write_text(f"{digest}  {source}\n")
+    try:
+        unpack(archive, target, member=info.member, stamp=f"{source} sha256={digest}")
+    except DownloadError as e:  # not an archive, or not the one expected: trust nothing
+        archive.unlink(missing_ok=True)
+        raise DownloadError(f"{e}; deleted {archive.name}, recorded no SHA-256") from None
+    if info.sha256 is None and trusted is None:  # trusted only once it unpacked
+        atomic_write(record, f"{digest}  {source}\n")
         print(f"{archive.name}: SHA-256 {digest} (unknown to minimdm; recorded in {record})")
-    unpack(archive, target, member=info.member, stamp=f"{source} sha256={digest}")
     archive.unlink()
     return target
 

@@ -129,9 +129,13 @@ class Clip:
         self.local_rot = _check_quats(q, f"clip {self.name!r}", self.skeleton.names).astype(
             np.float32
         )
-        if self.positions is None:
-            pos, _ = self.fk()
-            self.positions = pos.numpy().astype(np.float32)
+        if self.positions is None:  # in blocks of frames: long clips keep small temporaries
+            root = torch.from_numpy(self.root_pos).to(_F64)
+            rot = torch.from_numpy(self.local_rot).to(_F64)
+            self.positions = np.concatenate([
+                forward_kinematics(self.skeleton, r, q)[0].numpy().astype(np.float32)
+                for r, q in zip(root.split(4096), rot.split(4096), strict=True)
+            ]) if F else np.zeros((0, J, 3), np.float32)  # fmt: skip
         self.positions = np.asarray(self.positions, dtype=np.float32)
         if self.positions.shape != (F, J, 3):
             raise ValueError(

@@ -15,8 +15,10 @@ Two steps, used by :func:`minimdm.motion.corpora.download_corpus` (``minimdm dat
 **Checks.** When the caller knows the archive's size and SHA-256, :func:`fetch` compares them
 with what arrived and refuses a mismatch, deleting the bad file. When it does not know them (the
 registry records ``None``: we never guess a hash), :func:`fetch` only *computes* the SHA-256 and
-returns it; :func:`~minimdm.motion.corpora.download_corpus` prints it and records it in the data
-folder, and checks later downloads against that record (trust on first use). Such a record
+returns it; :func:`~minimdm.motion.corpora.download_corpus` prints it and, once the archive has
+unpacked, records it in the data folder, and checks later downloads against that record (trust
+on first use). A download that fails a check (size, hash, not an archive, no such folder in it,
+an unsafe member) is deleted and records nothing. Such a record
 proves only that later downloads equal the first one, not that the first one was genuine.
 """
 
@@ -35,6 +37,8 @@ import zipfile
 from pathlib import Path, PurePosixPath
 
 from tqdm.auto import tqdm
+
+from minimdm.files import atomic_write
 
 __all__ = ["DONE", "DownloadError", "fetch", "sha256_of", "unpack"]
 
@@ -150,6 +154,8 @@ def fetch(
                     h.update(block)
                     got += len(block)
                     bar.update(len(block))
+                f.flush()
+                os.fsync(f.fileno())  # on disk before it is renamed whole
             if length and length.isdigit() and got != total:  # closed early, without an error
                 raise ConnectionError(f"the server promised {total} bytes")
         except (OSError, http.client.HTTPException) as e:  # lost mid-way: keep .part to resume
@@ -214,7 +220,7 @@ def unpack(archive: str | Path, target: str | Path, member: str = "", stamp: str
         src = tmp / "x" / member if member else tmp / "x"
         if not src.is_dir():
             raise DownloadError(f"{archive.name} holds no folder {member!r}")
-        (src / DONE).write_text(stamp + "\n")
+        atomic_write(src / DONE, stamp + "\n")
         if (target / DONE).exists():  # another process unpacked it meanwhile: keep theirs,
             return target  # it may be reading it (two benchmark processes on a new machine)
         if target.exists():  # a partial folder from an earlier, interrupted attempt

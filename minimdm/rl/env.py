@@ -33,6 +33,7 @@ from minimdm.amdm.models import MVAE
 from minimdm.control.core import ControlModel, sample_frame
 from minimdm.diffusion import ddim_timesteps
 from minimdm.motion import metrics
+from minimdm.validate import check_frames, check_int, check_number
 
 from .residual import ResidualSchedule, feature_indices, residual_hook
 from .tasks import Characters, Task
@@ -226,20 +227,17 @@ class SteeringVecEnv(VectorEnv):
     ) -> None:
         if observe not in OBSERVATIONS:
             raise ValueError(f"observe must be one of {OBSERVATIONS}, got {observe!r}")
-        starts = torch.as_tensor(starts, dtype=torch.float32)
         D = cm.dim
-        if starts.dim() != 2 or starts.shape[1] != D or len(starts) == 0:
-            raise ValueError(
-                f"starts must have shape (P, {D}) with P >= 1, got {tuple(starts.shape)}"
-            )
+        # the frames every reset() starts from: finite and in feature units, or refused here
+        starts = check_frames("starts", starts, D, ndim=(2,), shape_words=f"(P, {D})")
         self.cm, self.steerer, self.task = cm, steerer, task
-        self.action_penalty = float(action_penalty)
-        self.motion_penalty = float(motion_penalty)
+        self.action_penalty = check_number("action_penalty", action_penalty, low=0.0)
+        self.motion_penalty = check_number("motion_penalty", motion_penalty, low=0.0)
         measurable = cm.skeleton is not None and cm.layout is not None
         if self.motion_penalty and not measurable:
             raise ValueError("motion_penalty needs a base model with a skeleton and a layout")
         self.starts = cm.normalize(starts.to(cm.device))
-        self.num_envs = int(num_envs)
+        self.num_envs = check_int("num_envs", num_envs, low=1)
         self.generator = torch.Generator(device="cpu").manual_seed(seed)
         self.task.setup(self.num_envs, self.generator)
         self.observe = observe

@@ -10,17 +10,15 @@ task is not the one asked for, naming both.
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from torch import nn
-
 from minimdm.checkpoint import (
     Checkpoint,
     CheckpointMismatchError,
+    fingerprint,
     load_checkpoint,
 )
 from minimdm.control.core import ControlModel, as_control_model
@@ -36,16 +34,6 @@ __all__ = [
     "load_steering",
     "resolve_checkpoint",
 ]
-
-
-def fingerprint(model: nn.Module) -> str:
-    """A short hash of a network's weights (names, shapes and bytes), independent of its file."""
-    h = hashlib.sha256()
-    for name, t in sorted(model.state_dict().items()):
-        h.update(name.encode())
-        h.update(str(tuple(t.shape)).encode())
-        h.update(t.detach().cpu().contiguous().float().numpy().tobytes())
-    return h.hexdigest()[:16]
 
 
 def resolve_checkpoint(name: str | os.PathLike | Checkpoint) -> Checkpoint:

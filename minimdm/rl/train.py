@@ -27,8 +27,9 @@ from tqdm.auto import tqdm
 from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
 from minimdm.control.core import ControlModel, as_control_model
+from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import encode
-from minimdm.validate import check_choice, check_number
+from minimdm.validate import InputError, check_choice, check_int, check_number, check_output_dir
 
 from .env import OBSERVATIONS, LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
 from .policy import PolicyNet, base_identity, resolve_checkpoint
@@ -109,10 +110,18 @@ class RLConfig:
     config_file: str | None = None
 
     def __post_init__(self) -> None:
-        if self.num_envs < 1 or self.n_steps < 1 or self.total_steps < 1:
-            raise ValueError("num_envs, n_steps and total_steps must be >= 1")
+        for name in ("num_envs", "n_steps", "total_steps", "batch_size", "n_epochs", "n_levels"):
+            check_int(name, getattr(self, name), low=1)  # 2.7 is refused, not rounded down
         for name in ("action_penalty", "motion_penalty"):
             check_number(name, getattr(self, name), low=0.0)
+        for name in ("residual_scale", "latent_scale", "clip_range", "max_grad_norm"):
+            check_number(name, getattr(self, name), low=0.0, low_open=True)
+        check_number("lr", self.lr, low=0.0, low_open=True)
+        for name in ("gamma", "gae_lambda"):
+            check_number(name, getattr(self, name), low=0.0, high=1.0)
+        for name in ("ent_coef", "vf_coef"):
+            check_number(name, getattr(self, name), low=0.0)
+        check_number("log_std_init", self.log_std_init, low=-20.0, high=2.0)
         check_choice("observe", self.observe, OBSERVATIONS)
         if (self.num_envs * self.n_steps) % self.batch_size:
             raise ValueError(
@@ -140,6 +149,27 @@ def corpus_speed_range(frames: torch.Tensor, fps: float, q: float = 0.999) -> tu
     return (0.0, round(float(torch.quantile(speed, q)), 2))
 
 
+STEERABLE = ("amdm", "mvae")
+"""Kinds of base model a policy steers: A-MDM (residuals on its chain) and the MVAE (latent)."""
+
+
+def load_base(config: RLConfig, base: Checkpoint | None = None) -> Checkpoint:
+    """The config's base model (``base`` if given), refused unless it is of a kind a policy
+    steers, naming the config key and file."""
+    where = f" ({config.config_file})" if config.config_file else ""
+    if base is None:
+        try:
+            base = resolve_checkpoint(config.base)
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"base{where}: {e}") from None
+    if base.kind not in STEERABLE:
+        raise InputError(
+            f"base{where} must name an A-MDM or MVAE checkpoint (kinds {', '.join(STEERABLE)}) "
+            f"to steer, but {config.base!r} ({base.paths.weights}) holds kind {base.kind!r}"
+        )
+    return base
+
+
 def make_config_steerer(cm: ControlModel, config: RLConfig) -> Steerer:
     if cm.is_diffusion:
         T = cm.schedule.T
@@ -162,7 +192,7 @@ def build_env(
     seed: int | None = None,
 ) -> SteeringVecEnv:
     """The vector environment a config describes (its base model loaded if not given)."""
-    base = base if base is not None else resolve_checkpoint(config.base)
+    base = load_base(config, base)
     cm = as_control_model(base, steps=config.steps)
     opts = {k: tuple(v) if isinstance(v, list) else v for k, v in config.task_options.items()}
     starts = corpus_starts(base, config.start_split)
@@ -287,7 +317,8 @@ def _callback(total: int, log_path: Path, progress: bool, adapter: SB3VecEnv, t0
             self.bar = tqdm(
                 total=total, disable=not progress, desc="PPO", unit="step", unit_scale=True
             )
-            self.file = open(log_path, "w")
+            atomic_write(log_path, "")  # a fresh curve, then one appended line per rollout
+            self.file = open(log_path, "a")
             self.rows: list[dict] = []
 
         def _on_step(self) -> bool:
@@ -350,11 +381,24 @@ def train_policy(
     PPO rollout; ``out/model.safetensors`` + ``model.json`` the actor and its metadata: the
     config, the task, the steering, the base model's identity, training time and steps.
     """
+    out = check_output_dir("out", out)
+    with RunLock(out, (metadata or {}).get("command")):  # one run per folder
+        return _train_policy(config, out, progress, num_threads, metadata, base)
+
+
+def _train_policy(
+    config: RLConfig,
+    out: Path,
+    progress: bool,
+    num_threads: int,
+    metadata: dict | None,
+    base: Checkpoint | None,
+) -> RLResult:
     from stable_baselines3 import PPO
 
     torch.set_num_threads(num_threads)
     torch.manual_seed(config.seed)
-    base = base if base is not None else resolve_checkpoint(config.base)
+    base = load_base(config, base)
     env = build_env(config, base)
     adapter = SB3VecEnv(env)
     adapter.seed(config.seed)

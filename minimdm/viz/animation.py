@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import base64
 import os
-import shutil
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -12,6 +11,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from minimdm.files import atomic_output, atomic_write
 
 from .render import _render
 from .scene import Backend, Layout, _build_scene, _check_motions, _colors, _to_numpy
@@ -23,7 +24,14 @@ GIF_COLORS = 64  # one global GIF palette (no flicker); 32 merged the hues of 4 
 
 
 def _write(frames: Sequence[np.ndarray], path: Path, fps: float) -> None:
-    """Write RGB frames (H, W, 3) to a GIF (one global palette) or an MP4 (H.264)."""
+    """Write RGB frames (H, W, 3) to a GIF (one global palette) or an MP4 (H.264), atomically."""
+    if path.suffix.lower() not in (".gif", ".mp4"):
+        raise ValueError(f"out must end in .gif or .mp4, got {str(path)!r}")
+    with atomic_output(path) as tmp:
+        _encode(frames, tmp, fps)
+
+
+def _encode(frames: Sequence[np.ndarray], path: Path, fps: float) -> None:
     if path.suffix.lower() == ".gif":
         from PIL import Image
 
@@ -43,8 +51,6 @@ def _write(frames: Sequence[np.ndarray], path: Path, fps: float) -> None:
         ) as wr:
             for f in frames:
                 wr.append_data(np.ascontiguousarray(f[:h, :w]))
-    else:
-        raise ValueError(f"out must end in .gif or .mp4, got {str(path)!r}")
 
 
 @dataclass
@@ -70,7 +76,7 @@ class Animation:
         path = Path(path)
         if path.suffix.lower() == Path(self.path).suffix.lower():
             if path.resolve() != Path(self.path).resolve():
-                shutil.copyfile(self.path, path)
+                atomic_write(path, self.data)
         else:
             import imageio.v3 as iio
 

@@ -16,6 +16,7 @@ import torch
 
 from minimdm.fast import export_onnx, frame_graph
 from minimdm.fast.onnx import metadata
+from minimdm.files import atomic_write
 
 __all__ = ["live_bundle"]
 
@@ -58,5 +59,5 @@ def live_bundle(
         "starts": [[round(float(v), 6) for v in row] for row in starts],
     }
     path = out / f"{stem}.json"
-    path.write_text(json.dumps(data))
+    atomic_write(path, json.dumps(data))
     return {"model": model, "data": path}

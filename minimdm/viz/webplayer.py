@@ -34,6 +34,7 @@ from typing import Any, Literal
 import numpy as np
 from IPython.display import HTML
 
+from ..files import atomic_write
 from ..validate import InputError
 from .payload import build_payload, decode_positions
 from .scene import _check_size
@@ -249,10 +250,10 @@ class Player(HTML):
         if path.suffix.lower() not in (".html", ".htm"):
             raise InputError(f"path must end in .html, got {str(path)!r}")
         body = self.html(embed=True)
-        path.write_text(
+        atomic_write(
+            path,
             '<!DOCTYPE html>\n<html><head><meta charset="utf-8"><title>minimdm player</title>'
             f"</head><body>\n{body}\n</body></html>\n",
-            encoding="utf-8",
         )
         return path
 
