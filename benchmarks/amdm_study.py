@@ -60,6 +60,12 @@ def main(argv: list[str] | None = None) -> int:
     from minimdm.checkpoint import load_checkpoint
 
     ckpt = load_checkpoint(run)
+    if args.eval_only:  # the run's own config, and what it changed from the base
+        config = with_changes(config, ckpt.config, where=str(run))
+        base = asdict(load_config(args.base))
+        changes = {
+            k: v for k, v in asdict(config).items() if base.get(k) != v and k != "config_file"
+        }
     log = [rec for _, rec in read_log(run / "log.jsonl")]
     heldout = [r["heldout_loss"] for r in log if "heldout_loss" in r]
     for seed in args.seeds:
@@ -86,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         emit(row, args.out, quiet=True)
         a = rep["all"]
         keys = ("speed_ratio_10s", "worst_speed_ratio_10s", "along_ratio_10s", "speed_ratio_60s",
-                "moving_60s", "FS_ratio", "Jnt.Accel_ratio", "Bone.Err")  # fmt: skip
+                "moving_60s", "FS_ratio", "Jnt.Accel_ratio", "Bone.Err", "APD")  # fmt: skip
         summary = {k: round(a[k], 3) for k in keys if k in a}
         by = {c: round(v["speed_ratio_10s"], 2) for c, v in rep["contents"].items()}
         print(json.dumps({"name": args.name, "seed": seed, **summary, "by_content": by}))

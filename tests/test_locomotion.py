@@ -51,7 +51,7 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
         assert len(r["speed_by_second"]) == 2
         assert r["speed_ratio_10s"] == pytest.approx(r["speed_10s"] / r["take_speed"])
         assert 0.0 <= r["moving_60s"] <= 1.0
-        assert r["FS"] >= 0 and r["FS_data"] > 0 and r["Bone.Err"] >= 0
+        assert r["FS"] >= 0 and r["FS_data"] > 0 and r["Bone.Err"] >= 0 and r["APD"] > 0
     all_ = rep["all"]
     assert all_["worst_speed_ratio_10s"] <= all_["speed_ratio_10s"]
     assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])

@@ -15,7 +15,9 @@ rollout started from, the recording of the same actor and content:
 * **still moving** after 60 s: the share of futures whose tail speed is at least
   ``moving_ratio`` of the take's;
 * **foot sliding** and **joint acceleration** over the 10 s, against the same measures of the
-  take itself (:mod:`minimdm.motion.metrics`), and **bone error** against the take's actor.
+  take itself (:mod:`minimdm.motion.metrics`), and **bone error** against the take's actor;
+* **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
+  repeats one future scores low).
 
 :func:`locomotion_report` returns one record per take, per content and for all takes;
 ``benchmarks/locomotion.py`` prints them as JSON lines. Any motion checkpoint runs: A-MDM, the
@@ -238,6 +240,8 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             "Jnt.Accel_data": ref["Jnt.Accel"],
             "Bone.Err": metrics.bone_length_error(short_pos, sk.parents, ref["bones"]),
         }
+        if p.n_samples > 1:  # how far the futures spread over the paper's 150 frames (5 s)
+            row["APD"] = metrics.apd(x_i[:, : min(150, n_short)])
         if n_frames > n_short:
             s60 = tail_mean(speed, n_frames)
             row["speed_60s"] = float(s60.mean())
