@@ -8,8 +8,9 @@ read, every field that sizes an allocation or scales a result is checked against
 library ever writes:
 
 * the network's sizes (every integer of the model config) up to :data:`MAX_SIZE`;
-* the diffusion schedule: ``T`` in [1, :data:`MAX_T`], ``predicts`` eps or x0, ``clip_x0``
-  None, a finite number > 0 or a per-feature range of finite numbers with lo <= hi;
+* the diffusion schedule: ``T`` in [1, :data:`MAX_T`], ``predicts`` one of
+  :data:`~minimdm.diffusion.PREDICTS`, ``clip_x0`` None, a finite number > 0 or a per-feature
+  range of finite numbers with lo <= hi;
 * frame rates in [1, 1000] frames per second;
 * normalizer statistics (``mean``, ``std`` and ``floor`` of every normalizer, and the pairs of
   ``X_mean`` / ``X_std`` buffers of a network): finite, the standard deviations in
@@ -29,6 +30,8 @@ from typing import Any
 
 import torch
 from torch import Tensor
+
+from minimdm.diffusion.schedule import PREDICTS
 
 __all__ = [
     "MAX_SIZE",
@@ -148,8 +151,8 @@ def metadata_problem(meta: Mapping[str, Any]) -> str | None:
         if T is not None and not (isinstance(T, int) and not isinstance(T, bool)
                                   and 1 <= T <= MAX_T):  # fmt: skip
             return f"diffusion.T must be an integer in [1, {MAX_T}], got {T!r}"
-        if diff.get("predicts") not in (None, "eps", "x0"):
-            return f"diffusion.predicts must be 'eps' or 'x0', got {diff.get('predicts')!r}"
+        if diff.get("predicts") not in (None, *PREDICTS):
+            return f"diffusion.predicts must be one of {PREDICTS}, got {diff.get('predicts')!r}"
         if problem := _clip_problem(diff.get("clip_x0")):
             return problem
     for key in ("config", "feature_layout", "data"):

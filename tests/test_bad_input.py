@@ -565,7 +565,7 @@ CORRUPT: dict[str, tuple[Callable[[Any], bytes], tuple[str, ...]]] = {
     "T 1e9": (set_key("diffusion.T", 10**9), ("diffusion.T", "[1, 10000]", "1000000000")),
     "T 0": (set_key("diffusion.T", 0), ("diffusion.T", "[1, 10000]")),
     "width 1e9": (set_key("model.config.width", 10**9), ("model.config.width", "65536")),
-    "predicts 'v'": (set_key("diffusion.predicts", "v"), ("diffusion.predicts", "'v'")),
+    "predicts 'w'": (set_key("diffusion.predicts", "w"), ("diffusion.predicts", "'w'")),
     "int32 weights": (lambda c: retyped(c, torch.int32), ("stored as int32", "floating point")),
     "bool weights": (lambda c: retyped(c, torch.bool), ("stored as bool", "floating point")),
     "uint8 weights": (lambda c: retyped(c, torch.uint8), ("stored as uint8", "floating point")),
