@@ -720,3 +720,26 @@ def test_v_prediction_loss_sampler_and_model():
         )
     with pytest.raises(ValueError, match="predicts must be one of"):
         diffusion_loss(v_oracle, s, c, predicts="mu")
+
+
+@pytest.mark.parametrize("predicts", ["eps", "x0", "v"])
+def test_min_snr_weights_each_level_as_an_error_on_x0(predicts):
+    """Min-SNR-gamma (Hang et al. 2023): whatever the network predicts, level t's loss counts as
+    min(SNR_t, gamma) times the squared error of the implied x0_hat."""
+    s = NoiseSchedule("cosine", 20)
+    torch.manual_seed(0)
+    net = MLPDenoiser(DenoiserConfig(x_dim=3, cond_dim=0, width=16, depth=2, time_dim=8,
+                                     predicts=predicts))  # fmt: skip
+    x0 = torch.randn(64, 3)
+    plain, x0_hat = diffusion_loss(
+        net, s, x0, None, torch.Generator().manual_seed(1), predicts, reduce=False
+    )
+    weighted, _ = diffusion_loss(
+        net, s, x0, None, torch.Generator().manual_seed(1), predicts, reduce=False, snr_gamma=5.0
+    )
+    t = torch.randint(0, s.T, (64,), generator=torch.Generator().manual_seed(1))  # the same draw
+    snr = s.alphas_cumprod[t] / (1 - s.alphas_cumprod[t])
+    x0_err = ((x0_hat - x0) ** 2).mean(1)
+    torch.testing.assert_close(weighted, snr.clamp(max=5.0) * x0_err, rtol=1e-4, atol=1e-6)
+    if predicts == "x0":
+        torch.testing.assert_close(plain, x0_err)

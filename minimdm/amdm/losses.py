@@ -132,11 +132,13 @@ def frame_loss(
     kl_beta: float = 0.2,
     norm: str = "l2",
     geometry: FrameGeometry | None = None,
+    snr_gamma: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
     * amdm: the DDPM loss (A-MDM eq. 3), squared (``norm="l2"``) or absolute (``"l1"``), plus
-      the ``geometry`` losses of the reconstruction if given; the prediction is
+      the ``geometry`` losses of the reconstruction if given, each level weighted by Min-SNR-γ
+      when ``snr_gamma`` is given (:func:`~minimdm.diffusion.diffusion_loss`); the prediction is
       :math:`\\hat x_0` at the drawn step.
     * mse: :math:`\\|f(x_{f-1}) - x_f\\|^2 / D`; the prediction is :math:`f(x_{f-1})`.
     * mvae: :math:`\\|\\hat x_f - x_f\\|^2 / D + \\beta\\,\\mathrm{KL}(q \\| \\mathcal N(0, I)) / D`
@@ -156,8 +158,9 @@ def frame_loss(
                 return geometry(x0_hat, cond, x, ac.to(x0_hat.device)[t])
 
         return diffusion_loss(
-            model, schedule, x, cond, generator, predicts, reduce=False, norm=norm, x0_loss=x0_loss
-        )
+            model, schedule, x, cond, generator, predicts, reduce=False, norm=norm,
+            x0_loss=x0_loss, snr_gamma=snr_gamma,
+        )  # fmt: skip
     if kind == "mse":
         pred = model(cond)
         return ((pred - x) ** 2).mean(1), pred
@@ -183,6 +186,7 @@ def window_loss(
     norm: str = "l2",
     geometry: FrameGeometry | None = None,
     student_steps: int = 0,
+    snr_gamma: float | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -223,6 +227,7 @@ def window_loss(
         kl_beta=kl_beta,
         norm=norm,
         geometry=geometry,
+        snr_gamma=snr_gamma,
     )
 
     def teacher_loss() -> Tensor:  # every frame from its ground-truth predecessor, one batch

@@ -309,6 +309,7 @@ def _train(
         loss_kw,
         teacher_weight=config.teacher_weight,
         student_steps=config.student_steps,
+        snr_gamma=config.snr_gamma,
         geometry=_geometry(config, windows, normalizer, skeleton),
     )
 

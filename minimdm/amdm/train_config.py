@@ -67,6 +67,10 @@ class TrainConfig:
     the official A-MDM trainer (student loss + teacher loss at every rollout step); 0: none."""
     norm: str = "l2"
     """The DDPM loss's error: 'l2' (squared, eq. 3) or 'l1' (absolute, the official code's)."""
+    snr_gamma: float | None = None
+    """Weight the training loss's noise levels by Min-SNR-γ (Hang et al. 2023; amdm only): as an
+    error on the clean frame, level t counts min(SNR_t, γ); None: the loss of ``predicts`` as is
+    (the held-out loss stays unweighted)."""
     geo_consistency: float = 0.0
     """Weight of the loss that makes a predicted frame's root, positions and displacements agree
     (amdm only; :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
@@ -130,6 +134,10 @@ class TrainConfig:
             )
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be 'l1' or 'l2', got {self.norm!r}")
+        if self.snr_gamma is not None and not (
+            self.snr_gamma > 0 and math.isfinite(self.snr_gamma)
+        ):
+            raise ValueError(f"snr_gamma must be a finite float > 0 or null, got {self.snr_gamma}")
         if self.student_steps < 0:
             raise ValueError(f"student_steps must be >= 0, got {self.student_steps}")
         for name in ("geo_consistency", "geo_contact"):

@@ -328,6 +328,7 @@ def diffusion_loss(
     reduce: bool = True,
     norm: str = "l2",
     x0_loss: Callable[[Tensor, Tensor], Tensor] | None = None,
+    snr_gamma: float | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The simple DDPM loss (A-MDM eq. 3) at a uniformly drawn step per sample.
 
@@ -335,7 +336,12 @@ def diffusion_loss(
     ``"x0"`` the target is the clean sample, with ``"v"`` the velocity :func:`predict_v`.
     ``norm="l1"`` takes the absolute error instead of the square, as the official A-MDM code
     does. ``x0_loss(x0_hat, t) -> (B,)`` adds a loss on the reconstruction, e.g. the geometric
-    losses of MDM and CAMDM (:class:`minimdm.amdm.losses.FrameGeometry`).
+    losses of MDM and CAMDM (:class:`minimdm.amdm.losses.FrameGeometry`). ``snr_gamma`` weights
+    each level by Min-SNR-γ (Hang et al. 2023): as an error on :math:`x_0`, the loss weighs level
+    t by :math:`\\min(\\mathrm{SNR}_t, \\gamma)` with :math:`\\mathrm{SNR}_t = \\bar\\alpha_t /
+    (1 - \\bar\\alpha_t)` (an ε loss weighs it by :math:`\\mathrm{SNR}_t`, an x0 loss by 1, a v loss
+    by :math:`\\mathrm{SNR}_t + 1`), so the nearly clean levels count more than in the x0 loss
+    and less than in the ε loss.
     Returns ``(loss, x0_hat)``; ``x0_hat`` is the model's reconstruction, which scheduled
     sampling feeds forward as the next condition (A-MDM §3.2). ``reduce=False`` returns the
     per-sample loss.
@@ -358,6 +364,11 @@ def diffusion_loss(
         raise ValueError(f"norm must be 'l1' or 'l2', got {norm!r}")
     err = (out - target).abs() if norm == "l1" else (out - target) ** 2
     loss = err.flatten(1).mean(1)  # (B,)
+    if snr_gamma is not None:
+        ac = schedule.alphas_cumprod.to(x0.device)[t]
+        snr = ac / (1 - ac).clamp_min(1e-12)  # \bar\alpha_t / (1 - \bar\alpha_t)
+        native = {"eps": snr, "x0": torch.ones_like(snr), "v": snr + 1}[predicts]
+        loss = loss * snr.clamp(max=snr_gamma) / native
     if x0_loss is not None:
         loss = loss + x0_loss(x0_hat, t)
     return (loss.mean() if reduce else loss), x0_hat
