@@ -743,3 +743,8 @@ def test_min_snr_weights_each_level_as_an_error_on_x0(predicts):
     torch.testing.assert_close(weighted, snr.clamp(max=5.0) * x0_err, rtol=1e-4, atol=1e-6)
     if predicts == "x0":
         torch.testing.assert_close(plain, x0_err)
+    floored, _ = diffusion_loss(
+        net, s, x0, None, torch.Generator().manual_seed(1), predicts, reduce=False, snr_gamma=5.0,
+        snr_floor=1.0,
+    )  # fmt: skip
+    torch.testing.assert_close(floored, snr.clamp(1.0, 5.0) * x0_err, rtol=1e-4, atol=1e-6)

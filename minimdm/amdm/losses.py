@@ -133,6 +133,7 @@ def frame_loss(
     norm: str = "l2",
     geometry: FrameGeometry | None = None,
     snr_gamma: float | None = None,
+    snr_floor: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
@@ -159,7 +160,7 @@ def frame_loss(
 
         return diffusion_loss(
             model, schedule, x, cond, generator, predicts, reduce=False, norm=norm,
-            x0_loss=x0_loss, snr_gamma=snr_gamma,
+            x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor,
         )  # fmt: skip
     if kind == "mse":
         pred = model(cond)
@@ -187,6 +188,7 @@ def window_loss(
     geometry: FrameGeometry | None = None,
     student_steps: int = 0,
     snr_gamma: float | None = None,
+    snr_floor: float = 0.0,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -228,6 +230,7 @@ def window_loss(
         norm=norm,
         geometry=geometry,
         snr_gamma=snr_gamma,
+        snr_floor=snr_floor,
     )
 
     def teacher_loss() -> Tensor:  # every frame from its ground-truth predecessor, one batch

@@ -310,6 +310,7 @@ def _train(
         teacher_weight=config.teacher_weight,
         student_steps=config.student_steps,
         snr_gamma=config.snr_gamma,
+        snr_floor=config.snr_floor,
         geometry=_geometry(config, windows, normalizer, skeleton),
     )
 

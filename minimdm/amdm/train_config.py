@@ -71,6 +71,9 @@ class TrainConfig:
     """Weight the training loss's noise levels by Min-SNR-γ (Hang et al. 2023; amdm only): as an
     error on the clean frame, level t counts min(SNR_t, γ); None: the loss of ``predicts`` as is
     (the held-out loss stays unweighted)."""
+    snr_floor: float = 0.0
+    """With ``snr_gamma``: the noisiest levels count at least this much (1: as in the x0 loss;
+    Min-SNR itself gives them nearly 0)."""
     geo_consistency: float = 0.0
     """Weight of the loss that makes a predicted frame's root, positions and displacements agree
     (amdm only; :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
@@ -138,6 +141,8 @@ class TrainConfig:
             self.snr_gamma > 0 and math.isfinite(self.snr_gamma)
         ):
             raise ValueError(f"snr_gamma must be a finite float > 0 or null, got {self.snr_gamma}")
+        if not (self.snr_floor >= 0 and math.isfinite(self.snr_floor)):
+            raise ValueError(f"snr_floor must be a finite float >= 0, got {self.snr_floor}")
         if self.student_steps < 0:
             raise ValueError(f"student_steps must be >= 0, got {self.student_steps}")
         for name in ("geo_consistency", "geo_contact"):

@@ -329,6 +329,7 @@ def diffusion_loss(
     norm: str = "l2",
     x0_loss: Callable[[Tensor, Tensor], Tensor] | None = None,
     snr_gamma: float | None = None,
+    snr_floor: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """The simple DDPM loss (A-MDM eq. 3) at a uniformly drawn step per sample.
 
@@ -341,7 +342,8 @@ def diffusion_loss(
     t by :math:`\\min(\\mathrm{SNR}_t, \\gamma)` with :math:`\\mathrm{SNR}_t = \\bar\\alpha_t /
     (1 - \\bar\\alpha_t)` (an ε loss weighs it by :math:`\\mathrm{SNR}_t`, an x0 loss by 1, a v loss
     by :math:`\\mathrm{SNR}_t + 1`), so the nearly clean levels count more than in the x0 loss
-    and less than in the ε loss.
+    and less than in the ε loss. ``snr_floor`` raises the weight of the noisiest levels to at
+    least that (1: as much as the x0 loss gives them; Min-SNR leaves them near 0).
     Returns ``(loss, x0_hat)``; ``x0_hat`` is the model's reconstruction, which scheduled
     sampling feeds forward as the next condition (A-MDM §3.2). ``reduce=False`` returns the
     per-sample loss.
@@ -368,7 +370,7 @@ def diffusion_loss(
         ac = schedule.alphas_cumprod.to(x0.device)[t]
         snr = ac / (1 - ac).clamp_min(1e-12)  # \bar\alpha_t / (1 - \bar\alpha_t)
         native = {"eps": snr, "x0": torch.ones_like(snr), "v": snr + 1}[predicts]
-        loss = loss * snr.clamp(max=snr_gamma) / native
+        loss = loss * snr.clamp(max=snr_gamma).clamp(min=snr_floor) / native
     if x0_loss is not None:
         loss = loss + x0_loss(x0_hat, t)
     return (loss.mean() if reduce else loss), x0_hat
