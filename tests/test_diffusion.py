@@ -748,3 +748,28 @@ def test_min_snr_weights_each_level_as_an_error_on_x0(predicts):
         snr_floor=1.0,
     )  # fmt: skip
     torch.testing.assert_close(floored, snr.clamp(1.0, 5.0) * x0_err, rtol=1e-4, atol=1e-6)
+
+
+def test_skip_weights_are_the_best_linear_gain_on_the_noisy_frame():
+    """c(t) of skip_weights is the regression slope of x_0 on x_t when x_0 ~ N(mu, sigma^2), and an
+    x0-denoiser with a skip adds exactly c(t) x_t to its network's output."""
+    from minimdm.amdm.models import skip_weights
+
+    s = NoiseSchedule("cosine", 10)
+    c = torch.tensor(skip_weights(s.alphas_cumprod, 0.3))
+    g = torch.Generator().manual_seed(0)
+    x0 = 2.0 + 0.3 * torch.randn(200_000, generator=g, dtype=torch.float64)
+    for t in range(10):
+        ab = s.alphas_cumprod[t].double()
+        x_t = ab.sqrt() * x0 + (1 - ab).sqrt() * torch.randn(x0.shape, generator=g, dtype=x0.dtype)
+        slope = torch.cov(torch.stack([x_t, x0]))[0, 1] / x_t.var()
+        assert float(slope) == pytest.approx(float(c[t]), abs=0.01)
+    cfg = DenoiserConfig(x_dim=3, cond_dim=2, width=8, depth=2, time_dim=4, predicts="x0",
+                         skip=c.tolist())  # fmt: skip
+    net = MLPDenoiser(cfg)
+    torch.nn.init.zeros_(net.output.weight)
+    torch.nn.init.zeros_(net.output.bias)
+    x_t, t = torch.randn(5, 3), torch.tensor([0, 1, 4, 8, 9])
+    torch.testing.assert_close(net(x_t, t, torch.randn(5, 2)), c[t][:, None] * x_t)
+    with pytest.raises(ValueError, match="skip needs predicts='x0'"):
+        MLPDenoiser(DenoiserConfig(3, 2, 8, 2, 4, "eps", skip=c.tolist()))

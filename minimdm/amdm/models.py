@@ -32,6 +32,7 @@ __all__ = [
     "MVAEConfig",
     "MVAE",
     "timestep_embedding",
+    "skip_weights",
 ]
 
 
@@ -62,6 +63,32 @@ class DenoiserConfig:
     """Size of the sinusoidal time embedding e^t before its MLP."""
     predicts: str = "eps"
     """What the network outputs: 'eps' (A-MDM eq. 3), 'x0' or 'v' (Salimans & Ho 2022)."""
+    skip: list[float] | None = None
+    """x0-prediction only: the weight :math:`c_{skip}(t)` of the noisy input added to the
+    network's output at each level t (:func:`skip_weights`), or None (no skip)."""
+
+
+def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
+    """The skip weights of an x0-denoiser whose next frame spreads by ``sigma`` around its mean.
+
+    If :math:`x_f^0 \\sim \\mathcal N(\\mu, \\sigma^2)` given the previous frame, the best
+    estimate of it from :math:`x_f^t = \\sqrt{\\bar\\alpha_t} x_f^0 +
+    \\sqrt{1-\\bar\\alpha_t}\\,\\epsilon` is :math:`c(t)\\, x_f^t + (1 -
+    c(t)\\sqrt{\\bar\\alpha_t})\\,\\mu` with
+
+    .. math::
+        c(t) = \\frac{\\sigma^2 \\sqrt{\\bar\\alpha_t}}
+                    {\\bar\\alpha_t \\sigma^2 + 1 - \\bar\\alpha_t}.
+
+    Adding :math:`c(t)\\,x_f^t` to the network's output (the skip connection of Karras et al.
+    2022, eq. 7, with :math:`\\sigma_{data}` the spread of the *next frame*, not of all frames)
+    makes the nearly clean levels pass the noisy frame on, and with it the sample's own
+    variation, while the noisy levels still predict the frame from the condition. Without it,
+    an x0-network learns to ignore :math:`x_f^t` and every sample of a frame is the same.
+    """
+    ac = torch.as_tensor(alphas_cumprod, dtype=torch.float64)
+    s2 = float(sigma) ** 2
+    return (s2 * ac.sqrt() / (ac * s2 + 1 - ac)).tolist()
 
 
 class MLPDenoiser(MLP):
@@ -86,6 +113,10 @@ class MLPDenoiser(MLP):
         self.time_mlp = time_mlp
         self.config = config
         self.predicts = config.predicts
+        if config.skip is not None and config.predicts != "x0":
+            raise ValueError(f"skip needs predicts='x0', got {config.predicts!r}")
+        skip = torch.tensor(config.skip if config.skip is not None else [], dtype=torch.float32)
+        self.register_buffer("skip", skip, persistent=False)  # c_skip(t), (T,) or empty
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config
@@ -99,7 +130,10 @@ class MLPDenoiser(MLP):
         else:
             h = x_t
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
-        return super().forward(h, add=e)  # (B, D)
+        out = super().forward(h, add=e)  # (B, D)
+        if self.skip.numel():
+            out = out + self.skip[t][:, None] * x_t  # c_skip(t) x_f^t
+        return out
 
     def config_dict(self) -> dict:
         return asdict(self.config)

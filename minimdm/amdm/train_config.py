@@ -10,7 +10,14 @@ from torch import nn
 
 from minimdm import config as configs
 from minimdm.amdm.losses import MODEL_KINDS
-from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
+from minimdm.amdm.models import (
+    MVAE,
+    DenoiserConfig,
+    MLPDenoiser,
+    MLPRegressor,
+    MVAEConfig,
+    skip_weights,
+)
 from minimdm.nn import cosine_lr
 
 __all__ = ["TrainConfig", "load_config", "student_probability", "learning_rate", "build_network"]
@@ -37,7 +44,11 @@ class TrainConfig:
     schedule: str = "cosine"
     """Noise schedule: 'cosine' or 'linear'."""
     predicts: str = "eps"
-    """What the denoiser outputs: 'eps' (A-MDM eq. 3) or 'x0'."""
+    """What the denoiser outputs: 'eps' (A-MDM eq. 3), 'x0' or 'v'."""
+    skip_sigma: float = 0.0
+    """x0 only: add the noisy frame to the output with the weight that is best for a next frame
+    spread by this much around its mean (:func:`~minimdm.amdm.models.skip_weights`; normalized
+    units); 0: no skip."""
     # ---- optimisation
     lr: float = 3e-4
     """Adam learning rate at the start."""
@@ -137,6 +148,10 @@ class TrainConfig:
             )
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be 'l1' or 'l2', got {self.norm!r}")
+        if not (self.skip_sigma >= 0 and math.isfinite(self.skip_sigma)):
+            raise ValueError(f"skip_sigma must be a finite float >= 0, got {self.skip_sigma}")
+        if self.skip_sigma > 0 and self.predicts != "x0":
+            raise ValueError(f"skip_sigma needs predicts: x0, got {self.predicts!r}")
         if self.snr_gamma is not None and not (
             self.snr_gamma > 0 and math.isfinite(self.snr_gamma)
         ):
@@ -181,8 +196,14 @@ def learning_rate(config: TrainConfig, step: int) -> float:
 def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
     """The network of ``config.model_kind`` for frames of dimension ``x_dim``."""
     if config.model_kind == "amdm":
+        skip = None
+        if config.skip_sigma > 0:
+            from minimdm.diffusion import NoiseSchedule
+
+            ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
+            skip = skip_weights(ac, config.skip_sigma)
         dc = DenoiserConfig(
-            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts
+            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts, skip
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
