@@ -4,7 +4,10 @@ Each call trains ``--base`` with the ``--set`` overrides into ``runs/study/NAME`
 the folder holds a run), then runs ``minimdm.studies.locomotion`` on it and appends one row to
 ``benchmarks/results/amdm_study.jsonl``: the config, the training time, the held-out loss and
 the yardstick's numbers for all takes and per content. Proxy runs rank the candidates; the
-winner is trained at full length with ``minimdm train``.
+winner is trained at full length with ``minimdm train``. ``--table1`` scores the run on Table 1
+(A-MDM §7.3, the full protocol: 10 held-out states x 50 futures x 3 seeds) instead, one row with
+``"table1"`` in place of the yardstick, since APD, ADE and FDE are what the yardstick does not
+rank.
 
     python benchmarks/amdm_study.py x0 --set predicts=x0 clip_x0=data --steps 10000
 """
@@ -22,6 +25,7 @@ import torch
 import yaml
 from common import ROOT, emit, hardware  # noqa: I001  (benchmarks/common.py puts the repo on the path)
 
+from minimdm.amdm import evaluation
 from minimdm.amdm.train import load_config, read_log, train_amdm
 from minimdm.config import with_changes
 from minimdm.studies.locomotion import LocomotionProtocol, locomotion_report
@@ -43,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long-seconds", type=float, default=60.0)
     ap.add_argument("--seeds", type=int, nargs="*", default=[0], help="sampling seeds to score")
     ap.add_argument("--eval-only", action="store_true", help="score the run as it is")
+    ap.add_argument("--table1", action="store_true", help="score on Table 1 instead")
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -68,21 +73,34 @@ def main(argv: list[str] | None = None) -> int:
         }
     log = [rec for _, rec in read_log(run / "log.jsonl")]
     heldout = [r["heldout_loss"] for r in log if "heldout_loss" in r]
+    head = {
+        "benchmark": "amdm_study",
+        "name": args.name,
+        "base": Path(args.base).name,
+        "changes": changes,
+        "config": asdict(config),
+        "step": ckpt.metadata.get("step"),
+        "train_seconds": ckpt.metadata.get("train_seconds"),
+        "train_wall_this_call": round(train_wall, 1),
+        "heldout_loss": heldout[-1] if heldout else None,
+        "heldout_loss_min": min(heldout) if heldout else None,
+    }
+    if args.table1:
+        protocol = evaluation.Protocol()
+        t1 = time.perf_counter()
+        tab = evaluation.table1({args.name: ckpt}, protocol)[args.name]
+        table = {k: {"mean": round(m, 4), "std": round(s, 4)} for k, (m, s) in tab.items()}
+        emit({**head, "protocol": protocol.to_dict(), "eval_seconds":
+              round(time.perf_counter() - t1, 1), "table1": table, "hardware": hardware()},
+             args.out, quiet=True)  # fmt: skip
+        print(json.dumps({"name": args.name, **{k: v["mean"] for k, v in table.items()}}))
+        return 0
     for seed in args.seeds:
         p = LocomotionProtocol(n_samples=args.samples, long_seconds=args.long_seconds, seed=seed)
         t1 = time.perf_counter()
         rep = locomotion_report(ckpt, p)
         row = {
-            "benchmark": "amdm_study",
-            "name": args.name,
-            "base": Path(args.base).name,
-            "changes": changes,
-            "config": asdict(config),
-            "step": ckpt.metadata.get("step"),
-            "train_seconds": ckpt.metadata.get("train_seconds"),
-            "train_wall_this_call": round(train_wall, 1),
-            "heldout_loss": heldout[-1] if heldout else None,
-            "heldout_loss_min": min(heldout) if heldout else None,
+            **head,
             "protocol": rep["protocol"],
             "eval_seconds": round(time.perf_counter() - t1, 1),
             "all": rep["all"],

@@ -773,3 +773,23 @@ def test_skip_weights_are_the_best_linear_gain_on_the_noisy_frame():
     torch.testing.assert_close(net(x_t, t, torch.randn(5, 2)), c[t][:, None] * x_t)
     with pytest.raises(ValueError, match="skip needs predicts='x0'"):
         MLPDenoiser(DenoiserConfig(3, 2, 8, 2, 4, "eps", skip=c.tolist()))
+
+
+def test_a_root_only_skip_passes_the_noisy_frame_on_only_in_the_roots_velocity():
+    """skip_features='root' adds c(t) x_t to d_x, d_y, d_r (the first three features) and nothing
+    to the joints; the mask travels with the checkpoint's config."""
+    from minimdm.amdm.train_config import TrainConfig, build_network
+
+    cfg = TrainConfig(predicts="x0", skip_sigma=0.2, skip_features="root", T=6, width=8, depth=2)
+    net = build_network(cfg, 15)
+    assert net.config_dict()["skip_mask"] == [1.0] * 3 + [0.0] * 12
+    torch.nn.init.zeros_(net.output.weight)
+    torch.nn.init.zeros_(net.output.bias)
+    x_t, t = torch.randn(4, 15), torch.tensor([0, 2, 3, 5])
+    out = net(x_t, t, torch.randn(4, 15))
+    torch.testing.assert_close(out[:, :3], net.skip[t][:, None] * x_t[:, :3])
+    assert bool((out[:, 3:] == 0).all()) and bool((net.skip > 0).all())
+    with pytest.raises(ValueError, match="skip_features must be one of"):
+        TrainConfig(predicts="x0", skip_sigma=0.2, skip_features="joints")
+    with pytest.raises(ValueError, match="skip_mask must hold 3 zeros and ones"):
+        MLPDenoiser(DenoiserConfig(3, 2, 8, 2, 4, "x0", skip=[0.5], skip_mask=[1.0, 0.5, 0.0]))

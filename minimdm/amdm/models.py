@@ -66,6 +66,8 @@ class DenoiserConfig:
     skip: list[float] | None = None
     """x0-prediction only: the weight :math:`c_{skip}(t)` of the noisy input added to the
     network's output at each level t (:func:`skip_weights`), or None (no skip)."""
+    skip_mask: list[float] | None = None
+    """The features the skip applies to: one 0/1 per feature of x (D), or None (all)."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -117,6 +119,10 @@ class MLPDenoiser(MLP):
             raise ValueError(f"skip needs predicts='x0', got {config.predicts!r}")
         skip = torch.tensor(config.skip if config.skip is not None else [], dtype=torch.float32)
         self.register_buffer("skip", skip, persistent=False)  # c_skip(t), (T,) or empty
+        mask = config.skip_mask if config.skip_mask is not None else [1.0] * config.x_dim
+        if len(mask) != config.x_dim or any(m not in (0, 1) for m in mask):
+            raise ValueError(f"skip_mask must hold {config.x_dim} zeros and ones")
+        self.register_buffer("skip_mask", torch.tensor(mask, dtype=torch.float32), persistent=False)
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config
@@ -132,7 +138,7 @@ class MLPDenoiser(MLP):
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
         out = super().forward(h, add=e)  # (B, D)
         if self.skip.numel():
-            out = out + self.skip[t][:, None] * x_t  # c_skip(t) x_f^t
+            out = out + self.skip[t][:, None] * self.skip_mask * x_t  # c_skip(t) x_f^t
         return out
 
     def config_dict(self) -> dict:

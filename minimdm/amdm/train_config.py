@@ -20,6 +20,8 @@ from minimdm.amdm.models import (
 )
 from minimdm.nn import cosine_lr
 
+SKIP_FEATURES = ("all", "root")
+
 __all__ = ["TrainConfig", "load_config", "student_probability", "learning_rate", "build_network"]
 
 
@@ -49,6 +51,10 @@ class TrainConfig:
     """x0 only: add the noisy frame to the output with the weight that is best for a next frame
     spread by this much around its mean (:func:`~minimdm.amdm.models.skip_weights`; normalized
     units); 0: no skip."""
+    skip_features: str = "all"
+    """Which features the skip passes on: 'all', or 'root' (the root's planar and yaw velocity,
+    A-MDM's d_x, d_y, d_r). The noise a skip lets through is new in every frame: on the root's
+    velocity it is integrated into a smooth path, on the joints it is jitter."""
     # ---- optimisation
     lr: float = 3e-4
     """Adam learning rate at the start."""
@@ -150,6 +156,10 @@ class TrainConfig:
             raise ValueError(f"norm must be 'l1' or 'l2', got {self.norm!r}")
         if not (self.skip_sigma >= 0 and math.isfinite(self.skip_sigma)):
             raise ValueError(f"skip_sigma must be a finite float >= 0, got {self.skip_sigma}")
+        if self.skip_features not in SKIP_FEATURES:
+            raise ValueError(
+                f"skip_features must be one of {SKIP_FEATURES}, got {self.skip_features!r}"
+            )
         if self.skip_sigma > 0 and self.predicts != "x0":
             raise ValueError(f"skip_sigma needs predicts: x0, got {self.predicts!r}")
         if self.snr_gamma is not None and not (
@@ -202,8 +212,11 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
 
             ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
             skip = skip_weights(ac, config.skip_sigma)
+        mask = None
+        if skip is not None and config.skip_features == "root":
+            mask = [1.0] * 3 + [0.0] * (x_dim - 3)  # d_x, d_y, d_r (FeatureLayout's first 3)
         dc = DenoiserConfig(
-            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts, skip
+            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts, skip, mask
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
