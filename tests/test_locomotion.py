@@ -72,3 +72,27 @@ def test_a_checkpoint_of_another_skeleton_or_rate_is_named(ckpt):
         locomotion_report(other, p)
     with pytest.raises(InputError, match="no labelled locomotion takes"):
         locomotion_report(ckpt, dataclasses.replace(p, corpus="deepmimic"))
+
+
+def test_the_study_grid_pools_seeds_and_joins_table1(tmp_path):
+    import json
+
+    from minimdm.studies.locomotion import STUDY_COLUMNS, study_grid
+
+    def loco(name, seed, speed):
+        pool = {k: 1.0 for k in STUDY_COLUMNS.values()} | {"speed_ratio_10s": speed}
+        return {"name": name, "protocol": {"seed": seed}, "all": pool}
+
+    rows = [loco("a", 0, 0.8), loco("b", 0, 2.0), loco("a", 1, 1.2), loco("b", 0, 1.5),
+            {"name": "a", "table1": {"APD": {"mean": 50.0, "std": 2.0}}}]  # fmt: skip
+    path = tmp_path / "study.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    grid = study_grid(path)
+    assert list(grid) == ["a", "b"]
+    assert grid["a"]["speed 10 s"] == pytest.approx((1.0, 0.2))  # mean, std over seeds 0, 1
+    assert grid["a"]["seeds"] == 2 and grid["a"]["T1 APD"] == (50.0, 2.0)
+    assert grid["a"]["T1 ADE"] is None
+    assert grid["b"]["speed 10 s"] == 1.5 and grid["b"]["seeds"] == 1  # the later row wins
+    assert list(study_grid(path, ["b"])) == ["b"]
+    with pytest.raises(ValueError, match="no row of the run 'c'"):
+        study_grid(path, ["c"])

@@ -27,8 +27,10 @@ MVAE-style and MSE baselines (:func:`~minimdm.amdm.sampling.rollout`) and AAMDM
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,6 +52,8 @@ __all__ = [
     "take_reference",
     "speed_curve",
     "locomotion_report",
+    "STUDY_COLUMNS",
+    "study_grid",
 ]
 
 LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
@@ -274,4 +278,55 @@ def _pool(rows: list[dict]) -> dict[str, float]:
     out["Jnt.Accel_ratio"] = _ratio(out["Jnt.Accel"], out["Jnt.Accel_data"])
     if "speed_ratio_60s" in rows[0]:
         out["worst_speed_ratio_60s"] = float(min(r["speed_ratio_60s"] for r in rows))
+    return out
+
+
+STUDY_COLUMNS = {
+    "speed 10 s": "speed_ratio_10s",
+    "worst take": "worst_speed_ratio_10s",
+    "moving 60 s": "moving_60s",
+    "FS ×data": "FS_ratio",
+    "accel ×data": "Jnt.Accel_ratio",
+    "bone cm": "Bone.Err",
+    "APD 5 s": "APD",
+}
+"""The study grid's columns (header: key of a yardstick record's ``all`` pool)."""
+
+
+def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, dict[str, Any]]:
+    """The base-model study's grid from ``benchmarks/results/amdm_study.jsonl``.
+
+    One row per run (``names`` in that order, default: every run in file order): the yardstick
+    columns of :data:`STUDY_COLUMNS` as ``(mean, std)`` over the sampling seeds scored (a plain
+    number where one seed has the column), the number of seeds, and Table 1's APD, ADE and
+    FDE in cm where the run was also scored with ``--table1`` (their std is over Table 1's own
+    3 seeds). A run scored twice with one seed keeps the later row. Ready for
+    :func:`minimdm.utils.format_table`.
+    """
+    loco: dict[str, dict[int, dict]] = {}
+    table1: dict[str, dict] = {}
+    for line in Path(path).read_text().splitlines():
+        rec = json.loads(line)
+        if "table1" in rec:
+            table1[rec["name"]] = rec["table1"]
+        elif "all" in rec:
+            loco.setdefault(rec["name"], {})[rec["protocol"]["seed"]] = rec["all"]
+    order = list(names) if names is not None else list(dict.fromkeys([*loco, *table1]))
+    out: dict[str, dict[str, Any]] = {}
+    for name in order:
+        if name not in loco and name not in table1:
+            raise ValueError(f"{path} holds no row of the run {name!r}")
+        row: dict[str, Any] = {}
+        seeds = list(loco.get(name, {}).values())
+        for header, key in STUDY_COLUMNS.items():
+            vals = [s[key] for s in seeds if key in s]
+            if len(vals) > 1:
+                row[header] = (float(np.mean(vals)), float(np.std(vals)))
+            else:
+                row[header] = float(vals[0]) if vals else None
+        row["seeds"] = len(seeds)
+        for k in ("APD", "ADE", "FDE"):
+            cell = table1.get(name, {}).get(k)
+            row[f"T1 {k}"] = (cell["mean"], cell["std"]) if cell else None
+        out[name] = row
     return out
