@@ -106,6 +106,12 @@ def test_resume_gives_the_same_next_step(tmp_path, kind):
     # the log of the resumed run has each step once
     steps = [r["step"] for r in resumed.history if "loss" in r]
     assert steps == [k + 1]
+    # the checkpoint records both calls as segments: steps 0..k, then k..k+1
+    segs = load_checkpoint(tmp_path / "cut").metadata["segments"]
+    assert [(g["from_step"], g["to_step"]) for g in segs] == [(0, k), (k, k + 1)]
+    assert all(g["seconds"] >= 0 and g["threads"] >= 1 for g in segs)
+    full = load_checkpoint(tmp_path / "full").metadata["segments"]
+    assert [(g["from_step"], g["to_step"]) for g in full] == [(0, k + 1)]
     # a resumed run with another model config is refused, naming the difference
     with pytest.raises(ValueError, match="width"):
         train_amdm(tiny(model_kind=kind, width=48, total_steps=k + 2), tmp_path / "cut", feats)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import platform
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -65,6 +66,7 @@ from minimdm.checkpoint import (
     Checkpoint,
     checkpoint_paths,
     load_checkpoint,
+    load_train_state,
     resume_training,
     save_checkpoint,
 )
@@ -252,10 +254,21 @@ def _train(
     gen = torch.Generator(device=device).manual_seed(config.seed)
     paths = checkpoint_paths(out_dir)
     step, prior_seconds = 0, 0.0  # prior_seconds: training time of the runs this one resumes
+    segments: list[dict] = []  # the earlier calls that trained this run (model.json "segments")
     if resume:
         step, prior_seconds = resume_training(
             out_dir, asdict(config), model, opt, gen, ema, resumable=_RESUMABLE_CHANGES
         )
+        if step:
+            segments = list(load_train_state(out_dir)[0].get("segments", []))
+    segment = {
+        "command": (metadata or {}).get("command"),
+        "host": platform.node(),
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+        "from_step": step,
+    }
     if world.size > 1:  # each process draws its own batches: a generator per rank and start
         gen.manual_seed(config.seed + 7919 * world.rank + 104729 * step)
 
@@ -294,7 +307,9 @@ def _train(
             "generator": gen.get_state(),
         }
         seconds = prior_seconds + time.perf_counter() - t0  # wall time of the loop, all runs
+        this = {**segment, "to_step": at_step, "seconds": round(time.perf_counter() - t0, 1)}
         meta = dict(metadata_base, step=at_step, train_seconds=round(seconds, 1))
+        meta["segments"] = [*segments, this]  # one per call: a run may span sessions
         save_checkpoint(out_dir, ema if ema is not None else model, meta, optimizer_state=state)
 
     loss_kw = dict(
