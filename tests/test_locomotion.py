@@ -96,3 +96,26 @@ def test_the_study_grid_pools_seeds_and_joins_table1(tmp_path):
     assert list(study_grid(path, ["b"])) == ["b"]
     with pytest.raises(ValueError, match="no row of the run 'c'"):
         study_grid(path, ["c"])
+
+
+def test_the_yardstick_table_pools_one_tag_per_content_and_model(tmp_path):
+    import json
+
+    from minimdm.studies.locomotion import YARDSTICK_COLUMNS, yardstick_table
+
+    def rec(ck, scope, content, seed, speed, tag="new"):
+        r = {"checkpoint": ck, "scope": scope, "tag": tag, "protocol": {"seed": seed}}
+        r |= {k: 1.0 for k in YARDSTICK_COLUMNS.values()} | {"speed_ratio_10s": speed}
+        return r | ({"content": content} if scope == "content" else {})
+
+    rows = [rec("m", "content", "walk", 0, 0.5), rec("m", "content", "walk", 1, 0.7),
+            rec("m", "all", None, 0, 0.9), rec("m", "content", "walk", 0, 9.0, tag="old"),
+            rec("m", "take", "walk", 0, 9.0)]  # fmt: skip
+    path = tmp_path / "loco.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    table = yardstick_table(path, "new", {"A-MDM": "m"}, contents=("walk",))
+    assert list(table) == ["walk, A-MDM", "all, A-MDM"]
+    assert table["walk, A-MDM"]["speed 10 s"] == pytest.approx((0.6, 0.1))
+    assert table["walk, A-MDM"]["seeds"] == 2 and table["all, A-MDM"]["seeds"] == 1
+    with pytest.raises(ValueError, match="no 'new' row of m for 'run'"):
+        yardstick_table(path, "new", {"A-MDM": "m"}, contents=("run",))

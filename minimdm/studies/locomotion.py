@@ -54,6 +54,8 @@ __all__ = [
     "locomotion_report",
     "STUDY_COLUMNS",
     "study_grid",
+    "YARDSTICK_COLUMNS",
+    "yardstick_table",
 ]
 
 LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
@@ -329,4 +331,54 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
             cell = table1.get(name, {}).get(k)
             row[f"T1 {k}"] = (cell["mean"], cell["std"]) if cell else None
         out[name] = row
+    return out
+
+
+YARDSTICK_COLUMNS = {
+    "speed 10 s": "speed_ratio_10s",
+    "worst take": "worst_speed_ratio_10s",
+    "moving 60 s": "moving_60s",
+    "FS cm": "FS",
+    "FS data": "FS_data",
+    "accel": "Jnt.Accel",
+    "accel data": "Jnt.Accel_data",
+    "bone cm": "Bone.Err",
+}
+"""The yardstick table's columns (header: key of a content or ``all`` record)."""
+
+
+def yardstick_table(
+    path: str | Path, tag: str, checkpoints: dict[str, str], contents: tuple[str, ...] = LOCOMOTION
+) -> dict[str, dict[str, Any]]:
+    """Per content and model, the yardstick rows of ``benchmarks/locomotion.py`` with one tag.
+
+    Args:
+        path: the JSON-lines file (``benchmarks/results/locomotion.jsonl``).
+        tag: the rows' ``tag`` (a file holds several rounds).
+        checkpoints: ``{row label: checkpoint path as recorded}``, in table order.
+        contents: the contents, in table order, then ``"all"`` (every take pooled).
+
+    Returns ``{"content, label": {column: (mean, std) over the sampling seeds, "seeds": n}}``
+    with the columns of :data:`YARDSTICK_COLUMNS`: speeds as ratios of the take's own, foot
+    sliding and joint acceleration of the model beside the same takes' own (cm, cm/frame²).
+    """
+    found: dict[tuple[str, str], list[dict]] = {}
+    for line in Path(path).read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("tag") != tag or rec.get("scope") not in ("content", "all"):
+            continue
+        content = rec.get("content", "all") if rec["scope"] == "content" else "all"
+        found.setdefault((rec["checkpoint"], content), []).append(rec)
+    out: dict[str, dict[str, Any]] = {}
+    for content in (*contents, "all"):
+        for label, ck in checkpoints.items():
+            recs = found.get((ck, content))
+            if not recs:
+                raise ValueError(f"{path} holds no {tag!r} row of {ck} for {content!r}")
+            row: dict[str, Any] = {}
+            for header, key in YARDSTICK_COLUMNS.items():
+                vals = [r[key] for r in recs]
+                row[header] = (float(np.mean(vals)), float(np.std(vals)))
+            row["seeds"] = len(recs)
+            out[f"{content}, {label}"] = row
     return out
