@@ -144,20 +144,10 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> Path:
         WriteError: the file could not be written; ``path`` is as it was and no temporary file
             is left.
     """
-    path = _prepare(path)
     blob = data.encode("utf-8") if isinstance(data, str) else bytes(data)
-    tmp = _temp_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            _write(f, blob)
-        _commit(tmp, path)
-    except OSError as e:
-        tmp.unlink(missing_ok=True)
-        raise WriteError(path, e) from e
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        _write(f, blob)
+    return Path(path)
 
 
 @contextlib.contextmanager
