@@ -102,7 +102,8 @@ def target_reaching(models: dict, start, args) -> None:
         t0 = time.perf_counter()
         m = C.beam_search(
             cm, start.expand(len(goals), -1), C.target_score(goals), args.max_frames,
-            pool=args.pool, horizon=args.horizon, generator=g, stop_fn=C.reached(goals),
+            pool=args.pool, horizon=args.horizon, commit=args.commit, generator=g,
+            stop_fn=C.reached(goals),
         )  # fmt: skip
         seconds = time.perf_counter() - t0
         done = m.info["done_at"]
@@ -113,7 +114,8 @@ def target_reaching(models: dict, start, args) -> None:
                               for i in range(len(goals))])  # fmt: skip
         emit({
             "bench": "target_reaching", "model": name, "runs": len(goals), "pool": args.pool,
-            "horizon": args.horizon, "max_frames": args.max_frames, "radius_m": 0.15,
+            "horizon": args.horizon, "commit": args.commit, "max_frames": args.max_frames,
+            "radius_m": 0.15,
             "success_rate": round(float(ok.double().mean()), 3),
             "successes": int(ok.sum()),
             "success_ci95": wilson_interval(int(ok.sum()), len(goals)),
@@ -266,6 +268,8 @@ def main() -> None:
     p.add_argument("--runs", type=int, default=32, help="target-reaching runs per model")
     p.add_argument("--pool", type=int, default=32, help="P (the paper: 100)")
     p.add_argument("--horizon", type=int, default=1, help="H (the paper: 1)")
+    p.add_argument("--commit", type=int, default=1,
+                   help="frames of the best future kept before searching again (the paper: 1)")
     p.add_argument("--max-frames", type=int, default=450, help="frames before a run fails")
     p.add_argument("--samples", type=int, default=8, help="samples per inpainting case")
     p.add_argument("--inpaint-frames", type=int, default=240)

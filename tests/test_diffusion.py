@@ -15,7 +15,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
+from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, skip_weights
 from minimdm.diffusion import (
     DDGANStep,
     DDIMStep,
@@ -787,9 +787,35 @@ def test_a_root_only_skip_passes_the_noisy_frame_on_only_in_the_roots_velocity()
     torch.nn.init.zeros_(net.output.bias)
     x_t, t = torch.randn(4, 15), torch.tensor([0, 2, 3, 5])
     out = net(x_t, t, torch.randn(4, 15))
-    torch.testing.assert_close(out[:, :3], net.skip[t][:, None] * x_t[:, :3])
-    assert bool((out[:, 3:] == 0).all()) and bool((net.skip > 0).all())
+    torch.testing.assert_close(out[:, :3], net.skip[t][:, :3] * x_t[:, :3])
+    assert bool((out[:, 3:] == 0).all()) and bool((net.skip[:, :3] > 0).all())
     with pytest.raises(ValueError, match="skip_features must be one of"):
         TrainConfig(predicts="x0", skip_sigma=0.2, skip_features="joints")
     with pytest.raises(ValueError, match="skip_mask must hold 3 zeros and ones"):
         MLPDenoiser(DenoiserConfig(3, 2, 8, 2, 4, "x0", skip=[0.5], skip_mask=[1.0, 0.5, 0.0]))
+
+
+def test_the_roots_own_skip_spread_weights_its_three_features_and_leaves_the_joints_alone():
+    """skip_sigma_root gives d_x, d_y, d_r the weights c(t) of their own spread, the joints keep
+    skip_sigma's; without skip_sigma the joints get no skip at all."""
+    from minimdm.amdm.train_config import TrainConfig, build_network
+    from minimdm.diffusion import NoiseSchedule
+
+    ac = NoiseSchedule("cosine", 6).alphas_cumprod
+    root, joints = torch.tensor(skip_weights(ac, 0.2)), torch.tensor(skip_weights(ac, 0.06))
+    for sigma, expect in ((0.06, joints), (0.0, torch.zeros(6))):
+        cfg = TrainConfig(
+            predicts="x0", skip_sigma=sigma, skip_sigma_root=0.2, T=6, width=8, depth=2
+        )
+        net = build_network(cfg, 15)
+        torch.nn.init.zeros_(net.output.weight)
+        torch.nn.init.zeros_(net.output.bias)
+        x_t, t = torch.randn(4, 15), torch.tensor([0, 2, 3, 5])
+        out = net(x_t, t, torch.randn(4, 15))
+        torch.testing.assert_close(out[:, :3], root[t].float()[:, None] * x_t[:, :3])
+        torch.testing.assert_close(out[:, 3:], expect[t].float()[:, None] * x_t[:, 3:])
+    assert bool((root > joints).all())  # a wider spread passes more of the noisy frame on
+    with pytest.raises(ValueError, match="skip_sigma_root needs predicts: x0"):
+        TrainConfig(predicts="eps", skip_sigma_root=0.2)
+    with pytest.raises(ValueError, match="skip_sigma_root must be a finite float"):
+        TrainConfig(predicts="x0", skip_sigma_root=float("nan"))

@@ -119,3 +119,25 @@ def test_the_yardstick_table_pools_one_tag_per_content_and_model(tmp_path):
     assert table["walk, A-MDM"]["seeds"] == 2 and table["all, A-MDM"]["seeds"] == 1
     with pytest.raises(ValueError, match="no 'new' row of m for 'run'"):
         yardstick_table(path, "new", {"A-MDM": "m"}, contents=("run",))
+
+
+def test_an_aamdm_motion_model_runs_the_same_yardstick(tmp_path):
+    """An AAMDM motion checkpoint goes through its own rollout (trajectory features and latent
+    diffusion) from the same takes and frames, and reports the same columns."""
+    from minimdm.aamdm.motion_train import AAMDMTrainConfig, train_aamdm_motion
+
+    cfg = AAMDMTrainConfig(
+        corpus="bandai-namco-1", split="train", clips=["dataset-1_walk_normal_002"],
+        loop_frames=None, z_dim=4, ae_width=16, ae_depth=2, ae_steps=2, ae_batch=8, latent_dim=2,
+        width=16, depth=2, disc_width=16, window=2, polish_steps=1, polish_batch=4, gan_steps=1,
+        gan_batch=4,
+    )  # fmt: skip
+    train_aamdm_motion(cfg, tmp_path, progress=False)
+    ck = load_checkpoint(tmp_path)
+    assert ck.kind == "aamdm_motion"
+    p = LocomotionProtocol(n_samples=2, seconds=1.0, long_seconds=0.0, tail_seconds=0.5)
+    rep = locomotion_report(ck, p)
+    assert [r["take"] for r in rep["takes"]] == list(locomotion_takes("bandai-namco-1").names)
+    for r in rep["takes"]:
+        assert r["speed_10s"] >= 0 and r["FS"] >= 0 and r["Bone.Err"] >= 0 and r["APD"] >= 0
+        assert r["FS_data"] > 0 and len(r["speed_by_second"]) == 1

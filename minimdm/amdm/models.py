@@ -68,6 +68,9 @@ class DenoiserConfig:
     network's output at each level t (:func:`skip_weights`), or None (no skip)."""
     skip_mask: list[float] | None = None
     """The features the skip applies to: one 0/1 per feature of x (D), or None (all)."""
+    skip_root: list[float] | None = None
+    """x0-prediction only: :math:`c_{skip}(t)` of the root's three velocity features (d_x, d_y,
+    d_r, the first three of x) when they spread differently from the joints; None: ``skip``."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -117,12 +120,22 @@ class MLPDenoiser(MLP):
         self.predicts = config.predicts
         if config.skip is not None and config.predicts != "x0":
             raise ValueError(f"skip needs predicts='x0', got {config.predicts!r}")
-        skip = torch.tensor(config.skip if config.skip is not None else [], dtype=torch.float32)
-        self.register_buffer("skip", skip, persistent=False)  # c_skip(t), (T,) or empty
+        if config.skip_root is not None and config.predicts != "x0":
+            raise ValueError(f"skip_root needs predicts='x0', got {config.predicts!r}")
         mask = config.skip_mask if config.skip_mask is not None else [1.0] * config.x_dim
         if len(mask) != config.x_dim or any(m not in (0, 1) for m in mask):
             raise ValueError(f"skip_mask must hold {config.x_dim} zeros and ones")
-        self.register_buffer("skip_mask", torch.tensor(mask, dtype=torch.float32), persistent=False)
+        skip = torch.empty(0, config.x_dim)  # c_skip(t) of each feature, (T, D) or empty
+        if config.skip is not None:
+            skip = torch.tensor(config.skip, dtype=torch.float32)[:, None] * torch.tensor(mask)
+        if config.skip_root is not None:
+            root = torch.tensor(config.skip_root, dtype=torch.float32)
+            if skip.numel() == 0:
+                skip = torch.zeros(len(root), config.x_dim)
+            if len(root) != len(skip):
+                raise ValueError(f"skip_root must hold {len(skip)} weights, got {len(root)}")
+            skip[:, :3] = root[:, None]
+        self.register_buffer("skip", skip, persistent=False)
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config
@@ -138,7 +151,7 @@ class MLPDenoiser(MLP):
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
         out = super().forward(h, add=e)  # (B, D)
         if self.skip.numel():
-            out = out + self.skip[t][:, None] * self.skip_mask * x_t  # c_skip(t) x_f^t
+            out = out + self.skip[t] * x_t  # c_skip(t) x_f^t
         return out
 
     def config_dict(self) -> dict:

@@ -55,6 +55,9 @@ class TrainConfig:
     """Which features the skip passes on: 'all', or 'root' (the root's planar and yaw velocity,
     A-MDM's d_x, d_y, d_r). The noise a skip lets through is new in every frame: on the root's
     velocity it is integrated into a smooth path, on the joints it is jitter."""
+    skip_sigma_root: float | None = None
+    """x0 only: the skip's spread for the root's three velocity features (d_x, d_y, d_r) alone,
+    whose next frame is the least predictable (the yaw rate most); None: ``skip_sigma``."""
     # ---- optimisation
     lr: float = 3e-4
     """Adam learning rate at the start."""
@@ -160,6 +163,14 @@ class TrainConfig:
             raise ValueError(
                 f"skip_features must be one of {SKIP_FEATURES}, got {self.skip_features!r}"
             )
+        if self.skip_sigma_root is not None:
+            if not (self.skip_sigma_root >= 0 and math.isfinite(self.skip_sigma_root)):
+                raise ValueError(
+                    "skip_sigma_root must be a finite float >= 0 or null, "
+                    f"got {self.skip_sigma_root}"
+                )
+            if self.predicts != "x0":
+                raise ValueError(f"skip_sigma_root needs predicts: x0, got {self.predicts!r}")
         if self.skip_sigma > 0 and self.predicts != "x0":
             raise ValueError(f"skip_sigma needs predicts: x0, got {self.predicts!r}")
         if self.snr_gamma is not None and not (
@@ -212,11 +223,24 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
 
             ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
             skip = skip_weights(ac, config.skip_sigma)
-        mask = None
+        mask = skip_root = None
         if skip is not None and config.skip_features == "root":
             mask = [1.0] * 3 + [0.0] * (x_dim - 3)  # d_x, d_y, d_r (FeatureLayout's first 3)
+        if config.skip_sigma_root is not None:
+            from minimdm.diffusion import NoiseSchedule
+
+            ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
+            skip_root = skip_weights(ac, config.skip_sigma_root)
         dc = DenoiserConfig(
-            x_dim, x_dim, config.width, config.depth, config.time_dim, config.predicts, skip, mask
+            x_dim,
+            x_dim,
+            config.width,
+            config.depth,
+            config.time_dim,
+            config.predicts,
+            skip,
+            mask,
+            skip_root,
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
