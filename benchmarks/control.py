@@ -268,8 +268,12 @@ def main() -> None:
     p.add_argument("--runs", type=int, default=32, help="target-reaching runs per model")
     p.add_argument("--pool", type=int, default=32, help="P (the paper: 100)")
     p.add_argument("--horizon", type=int, default=1, help="H (the paper: 1)")
-    p.add_argument("--commit", type=int, default=1,
-                   help="frames of the best future kept before searching again (the paper: 1)")
+    p.add_argument(
+        "--commit",
+        type=int,
+        default=1,
+        help="frames of the best future kept before searching again (the paper: 1)",
+    )
     p.add_argument("--max-frames", type=int, default=450, help="frames before a run fails")
     p.add_argument("--samples", type=int, default=8, help="samples per inpainting case")
     p.add_argument("--inpaint-frames", type=int, default=240)
