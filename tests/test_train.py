@@ -382,3 +382,25 @@ def test_frame_geometry_is_zero_on_recorded_frames_and_sees_a_sliding_foot():
     assert float(contact(xs[1:], x[:-1], x[1:], one).mean()) > 1.4 * own
     # the weight (alpha-bar of the drawn level) scales it, per sample
     assert float(contact(xs[1:], x[:-1], x[1:], 0 * one).abs().max()) == 0.0
+
+
+def test_feature_scale_standardises_every_varying_feature_to_that_spread():
+    """feature_scale k divides the normalizer's std (and its floor) by k: the training frames come
+    out k times as large, with std k where a feature varies, and the stored normalizer maps them
+    back to the recorded features."""
+    from minimdm.amdm.train import _load_data
+    from minimdm.motion.features import Normalizer
+
+    base = dict(corpus="bandai-namco-1", split="train", loop_frames=None,
+                clips=["dataset-1_walk_normal_002", "dataset-1_run_normal_001"])  # fmt: skip
+    one, four = _load_data(TrainConfig(**base)), _load_data(TrainConfig(**base, feature_scale=4.0))
+    x1, x4 = torch.cat(one["features"]), torch.cat(four["features"])
+    torch.testing.assert_close(x4, 4 * x1, rtol=1e-5, atol=1e-5)
+    varying = one["normalizer"].std > one["normalizer"].floor
+    assert int(varying.sum()) > 200
+    std = x4.std(0, unbiased=False)[varying]
+    torch.testing.assert_close(std, torch.full_like(std, 4.0))
+    back = Normalizer.from_dict(four["normalizer"].to_dict()).denormalize(x4)
+    torch.testing.assert_close(back, one["normalizer"].denormalize(x1), rtol=1e-5, atol=1e-4)
+    with pytest.raises(ValueError, match="feature_scale must be a finite float > 0"):
+        TrainConfig(feature_scale=0.0)

@@ -121,6 +121,9 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
     clips = _load_clips(config.corpus, config.split, config.fps, config.clips, config.loop_frames)
     arrays = [features.encode(c) for c in _with_mirrored(clips, config.mirror)]  # [(F_i - 1, D)]
     normalizer = features.Normalizer.fit(arrays)
+    if config.feature_scale != 1.0:
+        k = config.feature_scale  # the floor too: a barely varying feature gets k as well
+        normalizer = features.Normalizer(normalizer.mean, normalizer.std / k, normalizer.floor / k)
     skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
     heldout = None
     if config.split == "train":  # the corpus's test takes: a held-out loss during training
