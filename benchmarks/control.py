@@ -15,6 +15,12 @@ Prints one JSON line per measurement. Not a test.
   contents (a run, a bow, a farewell wave, a side-step): keyframe error and smoothness against
   linear interpolation in feature space and random sampling.
 * ``speed``: ms/frame of each technique for one character on the CPU.
+* ``spread``: how far a model's next frames spread, given the same previous frame. From 48
+  frames of the held-out locomotion takes, P = 32 next frames each; the RMS over contexts of
+  their per-feature std, per feature group, in units of each feature's spread over the training
+  frames. The data's row is the RMS residual of the MSE regressor on the same frames: what the
+  previous frame leaves unexplained. Sampling-based control can only choose among futures that
+  differ, and the root's yaw rate is what turns a character.
 
 The start state is frame 20 of the held-out test take ``dataset-1_walk_normal_001`` (a normal
 walk no model has seen), placed at the origin heading +x; the models are the corpus models of
@@ -74,6 +80,47 @@ def quality(pos: torch.Tensor, skeleton, offsets) -> dict:
         "Bone.Err": round(metrics.bone_length_error(pos, skeleton.parents, ref), 3),
         "Jnt.Accel": round(metrics.joint_acceleration(pos), 3),
     }
+
+
+# --------------------------------------------------------------------------- next-frame spread
+
+
+def next_frame_spread(models: dict, mse, args) -> None:
+    from minimdm.studies.locomotion import locomotion_takes
+
+    ref = C.as_control_model(mse)  # its normalizer: the training frames' spread, feature_scale 1
+    takes = locomotion_takes(mse.config.get("corpus") or "bandai-namco-1")
+    pairs = [encode_pairs(c) for c in takes]
+    prev, nxt = torch.cat([p for p, _ in pairs]), torch.cat([n for _, n in pairs])  # raw features
+    pick = torch.randperm(len(prev), generator=torch.Generator().manual_seed(args.seed))[:48]
+    prev, nxt = prev[pick], nxt[pick]
+    lay = ref.layout
+    groups = {"root_vel": lay.root_vel, "yaw_rate": lay.yaw_rate, "joint_pos": lay.joint_pos,
+              "joint_vel": lay.joint_vel, "joint_rot": lay.joint_rot}  # fmt: skip
+
+    def rms(x: torch.Tensor) -> dict:  # (N, D) in units of the training spread -> per group
+        return {k: round(float(x[:, g].pow(2).mean().sqrt()), 4) for k, g in groups.items()}
+
+    with torch.no_grad():
+        resid = ref.normalize(nxt) - ref.net(ref.normalize(prev))
+    emit({"bench": "next_frame_spread", "model": "data (MSE residual)", "contexts": len(prev),
+          **rms(resid)})  # fmt: skip
+    P = 32
+    for name, cm in models.items():
+        g = torch.Generator().manual_seed(args.seed + 1)
+        x = C.sample_frame(cm, cm.normalize(prev).repeat_interleave(P, 0), g)
+        x = ref.normalize(cm.denormalize(x)).view(len(prev), P, -1)
+        emit({"bench": "next_frame_spread", "model": name, "contexts": len(prev), "samples": P,
+              **rms(x.std(1)), "mean_error": rms(x.mean(1) - ref.normalize(nxt))})  # fmt: skip
+
+
+def encode_pairs(clip) -> tuple[torch.Tensor, torch.Tensor]:
+    """(previous, next) raw feature frames of a take, every 15th frame from frame 30."""
+    from minimdm.motion.features import encode
+
+    x = encode(clip).float()
+    i = torch.arange(30, x.shape[0] - 1, 15)
+    return x[i], x[i + 1]
 
 
 # --------------------------------------------------------------------------- target reaching
@@ -258,7 +305,7 @@ def main() -> None:
     p.add_argument("--extra", nargs="*", default=[], metavar="NAME=PATH",
                    help="more models (diffusion ones also inpaint and inbetween)")  # fmt: skip
     p.add_argument("--only", nargs="+", default=["target", "speed"],
-                   choices=["target", "inpaint", "inbetween", "speed"])  # fmt: skip
+                   choices=["target", "inpaint", "inbetween", "speed", "spread"])  # fmt: skip
     p.add_argument(
         "--start",
         default=None,
@@ -306,7 +353,7 @@ def main() -> None:
     for item in args.extra:
         name, spec = item.split("=", 1)
         extras[name] = C.as_control_model(load(spec))
-    if "target" in args.only:
+    if {"target", "spread"} & set(args.only):
         models = {"amdm": amdm, "mvae": C.as_control_model(load(args.mvae))}
         mse = load(args.mse)
         models["mse"] = C.as_control_model(mse)
@@ -314,7 +361,10 @@ def main() -> None:
             mse, noise=C.regressor_noise(mse, evaluation.checkpoint_clips(mse))
         )
         models.update(extras)
-        target_reaching(models, start, args)
+        if "spread" in args.only:
+            next_frame_spread(models, mse, args)
+        if "target" in args.only:
+            target_reaching(models, start, args)
     if editing:
         test = evaluation.checkpoint_clips(amdm_ckpt, split="test")  # the held-out takes
         skeleton = test[take].skeleton  # the start take's actor: the reference bone lengths
