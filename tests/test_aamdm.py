@@ -379,3 +379,21 @@ def test_study_fps_times_the_one_loop_and_motion_metrics_of_one_clip():
     assert "APD" not in m and m["FS"] == metrics.foot_sliding(clip, [1])
     with pytest.raises(ValueError, match="reference needs"):
         metrics.motion_metrics(clip[None, None], [-1, 0], [1], [0.5], reference=clip)
+
+
+def test_mirror_doubles_the_motion_data_with_the_reflected_takes():
+    """mirror: True appends each take's mirror image to y and x: the forward speed is the same,
+    the sideways speed and the turning flip, and the future trajectory's lateral offsets flip."""
+    from minimdm.aamdm.motion_train import load_motion_data
+
+    base = dict(corpus="bandai-namco-1", split="train", loop_frames=None,
+                clips=["dataset-1_walk-left_active_001"])  # fmt: skip
+    one = load_motion_data(AAMDMTrainConfig(**base))
+    two = load_motion_data(AAMDMTrainConfig(**base, mirror=True))
+    assert len(two["y"]) == 2 * len(one["y"]) and list(two["clips"].names) == base["clips"]
+    y, m = one["y"][0], two["y"][1]
+    torch.testing.assert_close(m[:, 0], y[:, 0], atol=1e-5, rtol=0)  # forward speed
+    torch.testing.assert_close(m[:, 1:3], -y[:, 1:3], atol=1e-5, rtol=0)  # sideways, turning
+    assert float(y[:, 1].mean()) > 0.003 > -0.003 > float(m[:, 1].mean())  # left becomes right
+    torch.testing.assert_close(two["y"][0], y)
+    assert not torch.allclose(two["x"][1], one["x"][0], atol=1e-3)  # the futures are reflected

@@ -62,6 +62,9 @@ class AAMDMTrainConfig:
     """Clip or take names (None: all of them)."""
     loop_frames: int | None = 150
     """Unroll looping clips to this many frames (DeepMimic only)."""
+    mirror: bool = False
+    """Also train on every clip reflected left/right (:mod:`minimdm.motion.mirror`), as the base
+    A-MDM does: twice the frames, as many right turns as left ones."""
     horizons: list[int] = field(default_factory=lambda: [10, 20, 30])
     """Frames ahead of the future-trajectory features x."""
     z_dim: int = 24
@@ -149,15 +152,20 @@ def load_train_config(path: str | Path) -> AAMDMTrainConfig:
 
 
 def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
-    """Clips, per-clip features ``y`` (F_i - 1, D) and ``x`` (F_i - 1, 12), and the normalizer."""
+    """Clips, per-clip features ``y`` (F_i - 1, D) and ``x`` (F_i - 1, 12), and the normalizer.
+
+    ``clips`` are the takes as loaded; with ``config.mirror`` the features also hold their mirror
+    images, after them."""
     from minimdm.motion import features
     from minimdm.motion.corpora import load_motion
+    from minimdm.motion.mirror import mirror_clips
 
     clips = load_motion(
         config.corpus, config.split, config.fps, config.clips, config.loop_frames
     )  # the clips A-MDM's trainer would load for the same fields
-    ys = [features.encode(c) for c in clips]
-    xs = [clip_trajectory_features(c, tuple(config.horizons)) for c in clips]
+    frames_of = list(clips) + (mirror_clips(list(clips)) if config.mirror else [])
+    ys = [features.encode(c) for c in frames_of]
+    xs = [clip_trajectory_features(c, tuple(config.horizons)) for c in frames_of]
     skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
     return {
         "clips": clips,
