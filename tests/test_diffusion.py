@@ -815,6 +815,13 @@ def test_the_roots_own_skip_spread_weights_its_three_features_and_leaves_the_joi
         torch.testing.assert_close(out[:, :3], root[t].float()[:, None] * x_t[:, :3])
         torch.testing.assert_close(out[:, 3:], expect[t].float()[:, None] * x_t[:, 3:])
     assert bool((root > joints).all())  # a wider spread passes more of the noisy frame on
+    yaw = torch.tensor(skip_weights(ac, 0.4))
+    cfg = TrainConfig(predicts="x0", skip_sigma=0.06, skip_sigma_yaw=0.4, T=6, width=8, depth=2)
+    net = build_network(cfg, 15)  # the yaw rate alone gets its own spread; d_x, d_y the joints'
+    expect = torch.cat(
+        [joints[:, None].expand(6, 2), yaw[:, None], joints[:, None].expand(6, 12)], 1
+    )
+    torch.testing.assert_close(net.skip, expect.float())
     with pytest.raises(ValueError, match="skip_sigma_root needs predicts: x0"):
         TrainConfig(predicts="eps", skip_sigma_root=0.2)
     with pytest.raises(ValueError, match="skip_sigma_root must be a finite float"):

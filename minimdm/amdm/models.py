@@ -71,6 +71,9 @@ class DenoiserConfig:
     skip_root: list[float] | None = None
     """x0-prediction only: :math:`c_{skip}(t)` of the root's three velocity features (d_x, d_y,
     d_r, the first three of x) when they spread differently from the joints; None: ``skip``."""
+    skip_yaw: list[float] | None = None
+    """x0-prediction only: :math:`c_{skip}(t)` of the yaw rate d_r alone (the third feature of
+    x), after ``skip_root``; None: as the other root features."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -120,21 +123,24 @@ class MLPDenoiser(MLP):
         self.predicts = config.predicts
         if config.skip is not None and config.predicts != "x0":
             raise ValueError(f"skip needs predicts='x0', got {config.predicts!r}")
-        if config.skip_root is not None and config.predicts != "x0":
-            raise ValueError(f"skip_root needs predicts='x0', got {config.predicts!r}")
+        for name in ("skip_root", "skip_yaw"):
+            if getattr(config, name) is not None and config.predicts != "x0":
+                raise ValueError(f"{name} needs predicts='x0', got {config.predicts!r}")
         mask = config.skip_mask if config.skip_mask is not None else [1.0] * config.x_dim
         if len(mask) != config.x_dim or any(m not in (0, 1) for m in mask):
             raise ValueError(f"skip_mask must hold {config.x_dim} zeros and ones")
         skip = torch.empty(0, config.x_dim)  # c_skip(t) of each feature, (T, D) or empty
         if config.skip is not None:
             skip = torch.tensor(config.skip, dtype=torch.float32)[:, None] * torch.tensor(mask)
-        if config.skip_root is not None:
-            root = torch.tensor(config.skip_root, dtype=torch.float32)
+        for name, cols in (("skip_root", slice(0, 3)), ("skip_yaw", slice(2, 3))):
+            if getattr(config, name) is None:
+                continue
+            w = torch.tensor(getattr(config, name), dtype=torch.float32)
             if skip.numel() == 0:
-                skip = torch.zeros(len(root), config.x_dim)
-            if len(root) != len(skip):
-                raise ValueError(f"skip_root must hold {len(skip)} weights, got {len(root)}")
-            skip[:, :3] = root[:, None]
+                skip = torch.zeros(len(w), config.x_dim)
+            if len(w) != len(skip):
+                raise ValueError(f"{name} must hold {len(skip)} weights, got {len(w)}")
+            skip[:, cols] = w[:, None]
         self.register_buffer("skip", skip, persistent=False)
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:

@@ -58,6 +58,9 @@ class TrainConfig:
     skip_sigma_root: float | None = None
     """x0 only: the skip's spread for the root's three velocity features (d_x, d_y, d_r) alone,
     whose next frame is the least predictable (the yaw rate most); None: ``skip_sigma``."""
+    skip_sigma_yaw: float | None = None
+    """x0 only: the skip's spread for the yaw rate d_r alone, after ``skip_sigma_root``: the
+    turning choice, without the sideways and forward noise that slides the planted feet."""
     # ---- optimisation
     lr: float = 3e-4
     """Adam learning rate at the start."""
@@ -170,14 +173,14 @@ class TrainConfig:
             )
         if not (self.feature_scale > 0 and math.isfinite(self.feature_scale)):
             raise ValueError(f"feature_scale must be a finite float > 0, got {self.feature_scale}")
-        if self.skip_sigma_root is not None:
-            if not (self.skip_sigma_root >= 0 and math.isfinite(self.skip_sigma_root)):
-                raise ValueError(
-                    "skip_sigma_root must be a finite float >= 0 or null, "
-                    f"got {self.skip_sigma_root}"
-                )
+        for name in ("skip_sigma_root", "skip_sigma_yaw"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a finite float >= 0 or null, got {value}")
             if self.predicts != "x0":
-                raise ValueError(f"skip_sigma_root needs predicts: x0, got {self.predicts!r}")
+                raise ValueError(f"{name} needs predicts: x0, got {self.predicts!r}")
         if self.skip_sigma > 0 and self.predicts != "x0":
             raise ValueError(f"skip_sigma needs predicts: x0, got {self.predicts!r}")
         if self.snr_gamma is not None and not (
@@ -230,14 +233,16 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
 
             ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
             skip = skip_weights(ac, config.skip_sigma)
-        mask = skip_root = None
+        mask = None
         if skip is not None and config.skip_features == "root":
             mask = [1.0] * 3 + [0.0] * (x_dim - 3)  # d_x, d_y, d_r (FeatureLayout's first 3)
-        if config.skip_sigma_root is not None:
-            from minimdm.diffusion import NoiseSchedule
+        own = {}  # the root's and the yaw rate's own skip weights
+        for name in ("skip_sigma_root", "skip_sigma_yaw"):
+            if getattr(config, name) is not None:
+                from minimdm.diffusion import NoiseSchedule
 
-            ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
-            skip_root = skip_weights(ac, config.skip_sigma_root)
+                ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
+                own[name] = skip_weights(ac, getattr(config, name))
         dc = DenoiserConfig(
             x_dim,
             x_dim,
@@ -247,7 +252,8 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
             config.predicts,
             skip,
             mask,
-            skip_root,
+            own.get("skip_sigma_root"),
+            own.get("skip_sigma_yaw"),
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
