@@ -96,7 +96,18 @@ def old_body(sd, p: str, h: Tensor, e: Tensor, act=F.silu, norm: bool = True) ->
 def old_denoiser(sd, p: str, cfg: dict, x_t, t, cond) -> Tensor:
     h = torch.cat([x_t, cond], -1) if cfg["cond_dim"] else x_t
     e = old_time_mlp(sd, f"{p}time_mlp.", timestep_embedding(t, cfg["time_dim"]))
-    return old_body(sd, p, h, e)
+    out = old_body(sd, p, h, e)
+    if cfg.get("skip") or cfg.get("skip_root") or cfg.get("skip_yaw"):  # c_skip(t) x_t, per feature
+        n = len(cfg.get("skip") or cfg.get("skip_root") or cfg["skip_yaw"])
+        w = torch.zeros(n, cfg["x_dim"])
+        if cfg.get("skip"):
+            mask = torch.tensor(cfg.get("skip_mask") or [1.0] * cfg["x_dim"])
+            w = torch.tensor(cfg["skip"])[:, None] * mask
+        for key, cols in (("skip_root", slice(0, 3)), ("skip_yaw", slice(2, 3))):
+            if cfg.get(key):
+                w[:, cols] = torch.tensor(cfg[key])[:, None]
+        out = out + w[t] * x_t
+    return out
 
 
 def old_fourier(sd, name: str, v: Tensor) -> Tensor:
@@ -183,7 +194,7 @@ def compare(model: torch.nn.Module, prefix: str = "", sd: Recorder | None = None
         if isinstance(model, MLPDenoiser):
             c = model.config
             x, cond = _randn(g, B, c.x_dim), _randn(g, B, c.cond_dim)
-            t = torch.arange(B) % 5
+            t = torch.arange(B) % min(5, len(c.skip or c.skip_root or c.skip_yaw or range(5)))
             want = old_denoiser(sd, prefix, vars(c), x, t, cond if c.cond_dim else None)
             assert torch.equal(model(x, t, cond if c.cond_dim else None), want)
         elif isinstance(model, DDGANGenerator):
@@ -279,6 +290,11 @@ def test_shipped_checkpoint_loads_strictly_and_computes_as_before(path):
 RANDOM = {
     "denoiser": lambda: MLPDenoiser(DenoiserConfig(6, 6, 16, 4, 8, "eps")),
     "denoiser_uncond_depth2": lambda: MLPDenoiser(DenoiserConfig(3, 0, 16, 2, 8, "x0")),
+    "denoiser_skip": lambda: MLPDenoiser(
+        DenoiserConfig(
+            6, 6, 16, 3, 8, "x0", [0.9, 0.5, 0.1], None, [0.95, 0.7, 0.3], [1.0, 0.8, 0.5]
+        )
+    ),
     "regressor": lambda: MLPRegressor(4, 5, width=16, depth=3),
     "regressor_depth2": lambda: MLPRegressor(4, 5, width=16, depth=2),
     "mvae": lambda: MVAE(MVAEConfig(6, 6, 4, 16, 3)),
