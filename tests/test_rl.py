@@ -34,7 +34,9 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 @pytest.fixture(scope="module")
 def base():
-    return minimdm.pretrained("amdm")
+    # the base model the shipped policies were trained on (issue 31 retrains them on checkpoints/
+    # amdm, whose x0 network erases pushes on its noisy levels: these tests then fail on it)
+    return minimdm.pretrained("amdm_halting")
 
 
 @pytest.fixture(scope="module")
@@ -382,6 +384,7 @@ def tiny_policy(base, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("rl") / "target"
     config = RLConfig(
+        base="amdm_halting",
         task="target",
         task_options={"max_frames": 150},
         steps=4,
@@ -420,7 +423,7 @@ def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny
     config, result, out = tiny_policy
     assert sorted(p.name for p in out.iterdir()) == ["log.jsonl", "model.json", "model.safetensors"]
     meta = result.checkpoint.metadata
-    assert meta["base"]["name"] == "amdm" and meta["task"]["name"] == "target"
+    assert meta["base"]["name"] == "amdm_halting" and meta["task"]["name"] == "target"
     assert meta["env_steps"] == config.total_steps
     steering = load_steering(out, task="target")
     assert steering.steerer.schedule.levels == (19, 13) and steering.cm.steps == 4
@@ -431,7 +434,9 @@ def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny
 
 def test_policy_for_another_base_model_or_task_is_refused(tiny_policy):
     _, _, out = tiny_policy
-    with pytest.raises(CheckpointMismatchError, match=r"trained on the base model 'amdm'.*'mse'"):
+    with pytest.raises(
+        CheckpointMismatchError, match=r"trained on the base model 'amdm_halting'.*'mse'"
+    ):
         load_steering(out, base="mse")
     with pytest.raises(CheckpointMismatchError, match="task 'target', not 'joystick'"):
         load_steering(out, task="joystick")
