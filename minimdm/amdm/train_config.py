@@ -227,22 +227,17 @@ def learning_rate(config: TrainConfig, step: int) -> float:
 def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
     """The network of ``config.model_kind`` for frames of dimension ``x_dim``."""
     if config.model_kind == "amdm":
-        skip = None
-        if config.skip_sigma > 0:
-            from minimdm.diffusion import NoiseSchedule
+        from minimdm.diffusion import NoiseSchedule
 
-            ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
-            skip = skip_weights(ac, config.skip_sigma)
+        ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
+
+        def weights(sigma: float | None) -> list[float] | None:  # c_skip(t) of a spread, or None
+            return None if sigma is None else skip_weights(ac, sigma)
+
+        skip = weights(config.skip_sigma) if config.skip_sigma > 0 else None
         mask = None
         if skip is not None and config.skip_features == "root":
             mask = [1.0] * 3 + [0.0] * (x_dim - 3)  # d_x, d_y, d_r (FeatureLayout's first 3)
-        own = {}  # the root's and the yaw rate's own skip weights
-        for name in ("skip_sigma_root", "skip_sigma_yaw"):
-            if getattr(config, name) is not None:
-                from minimdm.diffusion import NoiseSchedule
-
-                ac = NoiseSchedule(config.schedule, config.T).alphas_cumprod
-                own[name] = skip_weights(ac, getattr(config, name))
         dc = DenoiserConfig(
             x_dim,
             x_dim,
@@ -252,8 +247,8 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
             config.predicts,
             skip,
             mask,
-            own.get("skip_sigma_root"),
-            own.get("skip_sigma_yaw"),
+            weights(config.skip_sigma_root),
+            weights(config.skip_sigma_yaw),
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
