@@ -133,20 +133,29 @@ def test_every_shipped_checkpoint_loads_and_its_clamp_is_a_valid_range(path):
 
 
 def test_the_base_models_box_bounds_every_frame_it_samples():
-    """The shipped A-MDM clamps x0_hat to ±3σ (chapter 3): the training range would cut none of
-    its training frames, the box cuts some, and no sampled frame leaves the box."""
+    """The A-MDM before the study clamps x0_hat to ±3σ: the training range would cut none of its
+    training frames, the box cuts some, and no sampled frame leaves the box. The book model
+    clamps to the training range itself: it cuts no training frame, and its samples stay in it."""
     import minimdm
     from minimdm.amdm import evaluation
     from minimdm.diffusion import data_range
 
-    ck = minimdm.pretrained("amdm")
-    fr = checkpoint_training_frames(ck)
-    assert fr.shape[1] == ck.feature_layout["dim"]
-    assert checkpoint_clamp_share(ck, data_range(fr), frames=fr) == 0.0
-    assert 0.0 < checkpoint_clamp_share(ck, frames=fr) < 1.0
-    state = evaluation.initial_state(ck, "dataset-1_walk_normal_001", 20)
-    r = minimdm.rollout(ck, state.features, 5, 4, generator=torch.Generator().manual_seed(0))
+    halting = minimdm.pretrained("amdm_halting")
+    fr = checkpoint_training_frames(halting)
+    assert fr.shape[1] == halting.feature_layout["dim"]
+    assert checkpoint_clamp_share(halting, data_range(fr), frames=fr) == 0.0
+    assert 0.0 < checkpoint_clamp_share(halting, frames=fr) < 1.0
+    state = evaluation.initial_state(halting, "dataset-1_walk_normal_001", 20)
+    r = minimdm.rollout(halting, state.features, 5, 4, generator=torch.Generator().manual_seed(0))
     assert r.normalized.abs().max() <= 3.0 + 1e-5
+
+    book = minimdm.pretrained("amdm")
+    fr = checkpoint_training_frames(book)
+    assert checkpoint_clamp_share(book, frames=fr) == 0.0
+    lo, hi = data_range(fr)
+    state = evaluation.initial_state(book, "dataset-1_walk_normal_001", 20)
+    r = minimdm.rollout(book, state.features, 5, 4, generator=torch.Generator().manual_seed(0))
+    assert bool(((r.normalized >= lo - 1e-5) & (r.normalized <= hi + 1e-5)).all())
 
 
 def test_aamdm_checkpoints_clamp_covers_their_training_data():
