@@ -117,6 +117,40 @@ def test_resume_gives_the_same_next_step(tmp_path, kind):
         train_amdm(tiny(model_kind=kind, width=48, total_steps=k + 2), tmp_path / "cut", feats)
 
 
+def test_half_storage_keeps_full_precision_for_resume(tmp_path):
+    """``storage: float16`` halves the sampling weights, which load back as float32 within
+    fp16 rounding; the training state stays float32, so a run resumed from it (here with the
+    storage switched back) matches the uninterrupted float32 run bit for bit."""
+    k = 4
+    feats = synthetic_features()
+    train_amdm(tiny(total_steps=k + 1), tmp_path / "full", feats, progress=False)
+
+    def crash(step, record):
+        if step == k:
+            raise Interrupt
+
+    cfg = tiny(total_steps=k + 1, ckpt_interval=k, storage="float16")
+    with pytest.raises(Interrupt):
+        train_amdm(cfg, tmp_path / "half", feats, progress=False, callback=crash)
+    half = load_checkpoint(tmp_path / "half")
+    assert half.metadata["storage"] == "float16"
+    stored = (tmp_path / "half" / "model.safetensors").stat().st_size
+    _, state = load_train_state(tmp_path / "half")
+    for key, value in half.model.state_dict().items():
+        exact = state["ema"][key]
+        assert value.dtype == torch.float32 and exact.dtype == torch.float32
+        assert torch.allclose(value, exact, rtol=1e-3, atol=1e-4), key
+    train_amdm(tiny(total_steps=k + 1, ckpt_interval=k), tmp_path / "half", feats, progress=False)
+    _, a = load_train_state(tmp_path / "full")
+    _, b = load_train_state(tmp_path / "half")
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), key
+    full_size = (tmp_path / "half" / "model.safetensors").stat().st_size
+    assert stored < 0.6 * full_size  # the float32 save after the resume is about twice as big
+    with pytest.raises(ValueError, match="storage"):
+        tiny(storage="float8")
+
+
 def test_the_loop_averages_with_the_shared_ema_and_follows_the_shared_schedule(tmp_path):
     """One step from the seeded initial weights: the EMA is ``ema_update`` of them (d = 0.1 at
     step 0), and every step's learning rate is ``cosine_lr`` of the config."""

@@ -161,6 +161,7 @@ _RESUMABLE_CHANGES = {
     "eval_windows",
     "ckpt_interval",
     "log_interval",
+    "storage",
     "device",
     "config_file",
 }
@@ -313,7 +314,10 @@ def _train(
         this = {**segment, "to_step": at_step, "seconds": round(time.perf_counter() - t0, 1)}
         meta = dict(metadata_base, step=at_step, train_seconds=round(seconds, 1))
         meta["segments"] = [*segments, this]  # one per call: a run may span sessions
-        save_checkpoint(out_dir, ema if ema is not None else model, meta, optimizer_state=state)
+        save_checkpoint(
+            out_dir, ema if ema is not None else model, meta, optimizer_state=state,
+            storage=config.storage,
+        )
 
     loss_kw = dict(
         kind=config.model_kind,

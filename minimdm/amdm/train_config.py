@@ -117,6 +117,10 @@ class TrainConfig:
     """Write a resumable checkpoint every this many steps (0: only at the end)."""
     log_interval: int = 50
     """Append the running training loss to log.jsonl every this many steps."""
+    storage: str = "float32"
+    """Precision of the sampling weights in ``model.safetensors``: 'float32', or 'float16' /
+    'bfloat16' (half the bytes; loading restores float32). The training state that resumes a
+    run always keeps full precision."""
     seed: int = 0
     """Seeds the initial weights and every random draw of training."""
     # ---- data
@@ -189,6 +193,10 @@ class TrainConfig:
             raise ValueError(f"snr_gamma must be a finite float > 0 or null, got {self.snr_gamma}")
         if not (self.snr_floor >= 0 and math.isfinite(self.snr_floor)):
             raise ValueError(f"snr_floor must be a finite float >= 0, got {self.snr_floor}")
+        if self.storage not in ("float32", "float16", "bfloat16"):
+            raise ValueError(
+                f"storage must be 'float32', 'float16' or 'bfloat16', got {self.storage!r}"
+            )
         if self.student_steps < 0:
             raise ValueError(f"student_steps must be >= 0, got {self.student_steps}")
         for name in ("geo_consistency", "geo_contact"):
