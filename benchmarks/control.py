@@ -313,8 +313,11 @@ def main() -> None:
         help="start state (default: START of the A-MDM checkpoint's corpus)",
     )
     p.add_argument("--runs", type=int, default=32, help="target-reaching runs per model")
-    p.add_argument("--no-baselines", action="store_true",
-                   help="spread and target: score --amdm and --extra only (a study's guard)")
+    p.add_argument(
+        "--no-baselines",
+        action="store_true",
+        help="spread and target: score --amdm and --extra only (a study's guard)",
+    )
     p.add_argument("--pool", type=int, default=32, help="P (the paper: 100)")
     p.add_argument("--horizon", type=int, default=1, help="H (the paper: 1)")
     p.add_argument(

@@ -315,7 +315,10 @@ def _train(
         meta = dict(metadata_base, step=at_step, train_seconds=round(seconds, 1))
         meta["segments"] = [*segments, this]  # one per call: a run may span sessions
         save_checkpoint(
-            out_dir, ema if ema is not None else model, meta, optimizer_state=state,
+            out_dir,
+            ema if ema is not None else model,
+            meta,
+            optimizer_state=state,
             storage=config.storage,
         )
 
