@@ -5,12 +5,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as hst
 from torch import nn
 
 from minimdm import files
 from minimdm.amdm.losses import make_windows, window_loss
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
-from minimdm.amdm.train import train_amdm
+from minimdm.amdm.train import LOCOMOTION, train_amdm, window_weights
 from minimdm.amdm.train_config import TrainConfig, build_network, load_config, student_probability
 from minimdm.checkpoint import (
     CheckpointMismatchError,
@@ -22,6 +24,7 @@ from minimdm.diffusion import NoiseSchedule, predict_x0_from_eps
 from minimdm.motion.features import FeatureLayout
 from minimdm.motion.skeleton import Skeleton
 from minimdm.nn import cosine_lr
+from minimdm.validate import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 D = 8
@@ -115,6 +118,44 @@ def test_resume_gives_the_same_next_step(tmp_path, kind):
     # a resumed run with another model config is refused, naming the difference
     with pytest.raises(ValueError, match="width"):
         train_amdm(tiny(model_kind=kind, width=48, total_steps=k + 2), tmp_path / "cut", feats)
+
+
+@given(
+    hst.lists(
+        hst.tuples(hst.integers(0, 40), hst.sampled_from([*LOCOMOTION, "bow", "dance", None])),
+        min_size=1,
+        max_size=12,
+    ),
+    hst.floats(0.05, 1.0),
+)
+def test_window_weights_give_locomotion_its_share_split_by_content(clips, share):
+    n = 3
+    lengths, contents = [f for f, _ in clips], [c for _, c in clips]
+    w = window_weights(lengths, n, contents, share)
+    counts = [max(0, f - n) for f in lengths]
+    assert w.shape == (sum(counts),) and (w >= 0).all()
+    if not w.numel():
+        return
+    assert float(w.sum()) == pytest.approx(1.0)
+    label = [c for c, k in zip(contents, counts, strict=True) for _ in range(k)]
+    by_content = {}
+    for c, wi in zip(label, w.tolist(), strict=True):
+        by_content[c] = by_content.get(c, 0.0) + wi
+    loco = [c for c in by_content if c in LOCOMOTION]
+    rest = [c for c in by_content if c not in LOCOMOTION]
+    if loco and rest:
+        assert sum(by_content[c] for c in loco) == pytest.approx(share)
+    for c in loco:  # equal among the locomotion contents present
+        assert by_content[c] == pytest.approx(by_content[loco[0]])
+    others = [wi for c, wi in zip(label, w.tolist(), strict=True) if c not in LOCOMOTION]
+    assert max(others, default=0) == pytest.approx(min(others, default=0))  # by count
+
+
+def test_locomotion_share_needs_content_labels(tmp_path):
+    with pytest.raises(InputError, match="content labels"):
+        train_amdm(tiny(locomotion_share=0.8), tmp_path, synthetic_features(), progress=False)
+    with pytest.raises(ValueError, match="locomotion_share"):
+        tiny(locomotion_share=1.5)
 
 
 def test_half_storage_keeps_full_precision_for_resume(tmp_path):

@@ -136,7 +136,36 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
         "skeleton": skeleton,
         "layout": features.FeatureLayout.for_skeleton(skeleton, config.fps),
         "clip_names": clips.names,
+        "contents": [c.labels.get("content") for c in clips] * (2 if config.mirror else 1),
     }
+
+
+LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
+"""The contents whose takes :attr:`TrainConfig.locomotion_share` draws from."""
+
+
+def window_weights(
+    lengths: Sequence[int], n: int, contents: Sequence[str | None], share: float
+) -> Tensor:
+    """Sampling weights (W,) of the windows :func:`make_windows` cuts from clips of these
+    lengths (F_i - n windows each): locomotion windows get ``share`` in all, split equally
+    among the locomotion contents present; the others get ``1 - share`` by count. The weights
+    sum to 1. With no clip of either kind, the other kind gets everything."""
+    if len(lengths) != len(contents):
+        raise ValueError(f"{len(lengths)} clips but {len(contents)} content labels")
+    counts = [max(0, int(f) - n) for f in lengths]
+    loco = sorted({c for c, k in zip(contents, counts, strict=True) if c in LOCOMOTION and k})
+    other = sum(k for c, k in zip(contents, counts, strict=True) if c not in LOCOMOTION)
+    if not loco or not other:
+        share = 1.0 if loco else 0.0
+    per_content = {c: sum(k for d, k in zip(contents, counts, strict=True) if d == c) for c in loco}
+    parts = []
+    for c, k in zip(contents, counts, strict=True):
+        if not k:
+            continue
+        w = share / len(loco) / per_content[c] if c in LOCOMOTION else (1 - share) / other
+        parts.append(torch.full((k,), w, dtype=torch.float64))
+    return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
 
 
 def _with_mirrored(clips: Any, mirror: bool) -> list:
@@ -235,12 +264,20 @@ def _train(
             f"batch_size {config.batch_size} must divide among the {world.size} processes"
         )
     device = torch.device(world.device)
-    clip_names, heldout = None, None
+    clip_names, heldout, contents = None, None, None
     if features is None:
         loaded = _load_data(config)
+        contents = loaded["contents"]
         features, clip_names, heldout = loaded["features"], loaded["clip_names"], loaded["heldout"]
         normalizer, skeleton, layout = loaded["normalizer"], loaded["skeleton"], loaded["layout"]
     windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
+    weights = None  # None: uniform over windows
+    if config.locomotion_share is not None:
+        if contents is None:
+            raise InputError("locomotion_share needs the corpus's content labels, not features")
+        lengths = [len(f) for f in features]
+        weights = window_weights(lengths, config.rollout, contents, config.locomotion_share)
+        weights = weights.to(device)
     clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
     x_dim = windows.shape[-1]
     schedule = NoiseSchedule(config.schedule, config.T, device=device)
@@ -395,7 +432,10 @@ def _train(
             set_lr(opt, lr)
             p = student_probability(config, step)
             B, W = config.batch_size // world.size, windows.shape[0]  # this process's share
-            idx = torch.randint(W, (B,), generator=gen, device=device)
+            if weights is None:
+                idx = torch.randint(W, (B,), generator=gen, device=device)
+            else:
+                idx = torch.multinomial(weights, B, replacement=True, generator=gen)
             loss, info = window_loss(trained, windows[idx], p, gen, **train_kw)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
