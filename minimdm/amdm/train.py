@@ -77,6 +77,7 @@ from minimdm.diffusion import (
     data_range,
 )
 from minimdm.files import RunLock, atomic_write
+from minimdm.motion.corpora import LOCOMOTION
 from minimdm.nn import ema_update, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
 from minimdm.validate import InputError, InputTypeError, check_output_dir, describe
@@ -138,10 +139,6 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
         "clip_names": clips.names,
         "contents": [c.labels.get("content") for c in clips] * (2 if config.mirror else 1),
     }
-
-
-LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
-"""The contents whose takes :attr:`TrainConfig.locomotion_share` draws from."""
 
 
 def window_weights(

@@ -84,6 +84,10 @@ _BANDAI_REPO = "BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset"
 _BANDAI_ZIP = f"https://github.com/{_BANDAI_REPO}/archive/refs/heads/main.zip"
 _BANDAI_ROOT = "Bandai-Namco-Research-Motiondataset-main/dataset"
 
+LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
+"""The locomotion contents of the Bandai-Namco corpora (their ``content`` label), in the order
+tables print them."""
+
 CORPORA: dict[str, Corpus] = {
     "bandai-namco-1": Corpus(
         name="bandai-namco-1",

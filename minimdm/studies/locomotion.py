@@ -39,7 +39,7 @@ from torch import Tensor
 
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion import metrics
-from minimdm.motion.corpora import load_motion
+from minimdm.motion.corpora import LOCOMOTION, load_motion
 from minimdm.motion.data import Clip, MotionDataset
 from minimdm.motion.features import FeatureLayout, StartPose, encode, start_pose_of
 from minimdm.validate import InputError, MismatchError
@@ -57,9 +57,6 @@ __all__ = [
     "YARDSTICK_COLUMNS",
     "yardstick_table",
 ]
-
-LOCOMOTION = ("walk", "walk-back", "walk-left", "walk-right", "run", "dash")
-"""The locomotion contents of the Bandai-Namco corpora, in the order tables print them."""
 
 
 @dataclass
