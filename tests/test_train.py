@@ -459,6 +459,38 @@ def test_frame_geometry_is_zero_on_recorded_frames_and_sees_a_sliding_foot():
     assert float(contact(xs[1:], x[:-1], x[1:], 0 * one).abs().max()) == 0.0
 
 
+def test_frame_geometry_bone_loss_measures_the_recorded_bones_and_a_stretched_one():
+    from minimdm.amdm.losses import FrameGeometry
+    from minimdm.motion import metrics
+    from minimdm.motion.corpora import load_corpus
+    from minimdm.motion.features import Normalizer, encode
+
+    take = load_corpus("bandai-namco-1", split="test", takes=["dataset-1_walk_normal_001"])[0]
+    feats = encode(take)  # (F, D)
+    norm = Normalizer.fit([feats])
+    x = norm.normalize(feats)
+    sk = take.skeleton
+    J, feet = len(sk), sk.foot_indices
+    offset = metrics.foot_contact_offsets(take.positions, feet)
+    geo = FrameGeometry(norm.mean, norm.std, J, feet, offset, 0.025, 0, 0, sk.parents, bones=1)
+    # the bones of a frame's root-relative positions are the recording's bones
+    recorded = metrics.bone_lengths(take.positions[1:], sk.parents).float()  # encode drops frame 0
+    torch.testing.assert_close(geo.bone_lengths(x), recorded, atol=1e-4, rtol=0)
+    one = torch.ones(x.shape[0] - 1)
+    assert float(geo(x[1:], x[:-1], x[1:], one).abs().max()) < 1e-6
+    # stretch one bone by 2 cm (the left hand, a leaf, along its bone): (2 cm / 1 cm)^2 / 20 bones
+    hand = sk.names.index("Hand_L")
+    pos = feats[:, 3 : 3 + 3 * J].unflatten(-1, (J, 3))
+    along = pos[:, hand] - pos[:, sk.parents[hand]]
+    stretched = feats.clone()
+    k = 3 + 3 * hand
+    stretched[:, k : k + 3] += 0.02 * along / along.norm(dim=-1, keepdim=True)
+    loss = geo(norm.normalize(stretched)[1:], x[:-1], x[1:], one)
+    torch.testing.assert_close(loss, torch.full_like(loss, 4 / (J - 1)), atol=2e-3, rtol=0)
+    with pytest.raises(ValueError, match="parents"):
+        FrameGeometry(norm.mean, norm.std, J, feet, offset, bones=1)
+
+
 def test_feature_scale_standardises_every_varying_feature_to_that_spread():
     """feature_scale k divides the normalizer's std (and its floor) by k: the training frames come
     out k times as large, with std k where a feature varies, and the stored normalizer maps them

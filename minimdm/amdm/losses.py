@@ -47,7 +47,12 @@ class FrameGeometry:
     * **foot contact**: :math:`w(h_f)\\,\\|\\Delta_f^{xy}\\|^2` for the foot joints, with
       :math:`w` the contact weight of the foot-sliding metric
       (:func:`~minimdm.motion.metrics.contact_weight`) at the *recorded* foot height: a foot that
-      the recording plants must not slide in the prediction.
+      the recording plants must not slide in the prediction;
+    * **bones**: :math:`\\big((\\hat L_b - L_b) / 1\\,\\mathrm{cm}\\big)^2` averaged over the
+      bones, with :math:`\\hat L_b` the length of bone b in the predicted ``j_p`` and :math:`L_b`
+      in the recorded frame (each actor has its own bones): the bone error of A-MDM eq. 11,
+      squared. A centimetre is about one standard deviation of a joint's displacement per frame,
+      so it weighs as the other two do.
 
     Both are weighted by :math:`\\bar\\alpha_t`, so that the blurred reconstructions of the noisiest
     levels are not pushed around. On recorded frames the consistency loss is zero up to float
@@ -64,6 +69,8 @@ class FrameGeometry:
         height_threshold: float = 0.025,
         consistency: float = 1.0,
         contact: float = 1.0,
+        parents: Sequence[int] | None = None,
+        bones: float = 0.0,
     ) -> None:
         self.mean, self.std = torch.as_tensor(mean).float(), torch.as_tensor(std).float()
         self.J = int(n_joints)
@@ -76,6 +83,11 @@ class FrameGeometry:
         self.foot_offset = torch.as_tensor(list(foot_offset), dtype=torch.float32)
         self.height_threshold = float(height_threshold)
         self.consistency, self.contact = float(consistency), float(contact)
+        self.bones = float(bones)
+        if self.bones > 0 and (parents is None or len(parents) != self.J):
+            raise ValueError(f"the bone loss needs the parents of the {self.J} joints")
+        self.child = [j for j, p in enumerate(parents or []) if p >= 0]
+        self.parent = [parents[j] for j in self.child] if parents is not None else []
         J = self.J
         self.vel_std = self.std[3 + 3 * J : 3 + 6 * J].reshape(J, 3)  # (J, 3)
 
@@ -86,6 +98,11 @@ class FrameGeometry:
         pos = x[:, 3 : 3 + 3 * J].unflatten(-1, (J, 3))
         vel = x[:, 3 + 3 * J : 3 + 6 * J].unflatten(-1, (J, 3))
         return x[:, 0:2], x[:, 2], pos, vel
+
+    def bone_lengths(self, x: Tensor) -> Tensor:
+        """The length (B, J-1), metres, of every bone of the joint positions of frame ``x``."""
+        pos = self._parts(x)[2]
+        return (pos[:, self.child] - pos[:, self.parent]).norm(dim=-1)
 
     def displacement(self, x: Tensor, cond: Tensor) -> Tensor:
         """:math:`\\Delta_f` (B, J, 3), metres, of frame ``x`` after ``cond`` (both normalized)."""
@@ -118,6 +135,9 @@ class FrameGeometry:
             w = 2 - 2 ** (h / self.height_threshold).clamp(0, 1)  # the FS metric's weight
             slide = ((disp[:, self.feet, :2] / vs[self.feet, :2]) ** 2).sum(-1)  # (B, N)
             out = out + self.contact * (w * slide).mean(1)
+        if self.bones > 0:
+            error = (self.bone_lengths(x0_hat) - self.bone_lengths(target)) / 0.01  # (B, J-1)
+            out = out + self.bones * (error**2).mean(1)
         return weight * out
 
 

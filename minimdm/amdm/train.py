@@ -474,10 +474,12 @@ def _train(
 
 
 def _geometry(config: TrainConfig, windows: Tensor, normalizer: Any, skeleton: Any):
-    """The geometric losses of ``config`` (None when both weights are 0): the normalizer's
+    """The geometric losses of ``config`` (None when all their weights are 0): the normalizer's
     statistics, the skeleton's feet, and the feet's contact height read off the training frames
     as the foot-sliding metric reads it (:func:`~minimdm.motion.metrics.foot_contact_offsets`)."""
-    if config.model_kind != "amdm" or not (config.geo_consistency or config.geo_contact):
+    if config.model_kind != "amdm" or not (
+        config.geo_consistency or config.geo_contact or config.geo_bones
+    ):
         return None
     if normalizer is None or skeleton is None:
         raise InputError("geometric losses need the normalizer and the skeleton of the data")
@@ -499,6 +501,8 @@ def _geometry(config: TrainConfig, windows: Tensor, normalizer: Any, skeleton: A
         offset,
         consistency=config.geo_consistency,
         contact=config.geo_contact,
+        parents=sk.parents,
+        bones=config.geo_bones,
     )
 
 

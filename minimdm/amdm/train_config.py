@@ -103,6 +103,9 @@ class TrainConfig:
     geo_contact: float = 0.0
     """Weight of the loss that keeps the feet still where the recording plants them (amdm only;
     :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
+    geo_bones: float = 0.0
+    """Weight of the loss that keeps a predicted frame's bone lengths those of the recording
+    (amdm only; :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -208,7 +211,7 @@ class TrainConfig:
             )
         if self.student_steps < 0:
             raise ValueError(f"student_steps must be >= 0, got {self.student_steps}")
-        for name in ("geo_consistency", "geo_contact"):
+        for name in ("geo_consistency", "geo_contact", "geo_bones"):
             w = getattr(self, name)
             if not (w >= 0 and math.isfinite(w)):
                 raise ValueError(f"{name} must be a finite float >= 0, got {w}")
