@@ -14,16 +14,6 @@ from pathlib import Path
 
 from minimdm._version import __version__
 
-# The modules that define network kinds register them with minimdm.checkpoint on import, so
-# that load_checkpoint can rebuild every kind the library ships.
-from minimdm.aamdm import model as _aamdm_model  # noqa: F401  kind "ddgan"
-from minimdm.aamdm import motion as _aamdm_motion  # noqa: F401  kind "aamdm_motion"
-from minimdm.aamdm import nets as _aamdm_nets  # noqa: F401  kind "ddgan_generator"
-from minimdm.amdm import models as _amdm_models  # noqa: F401  kinds "amdm", "mse", "mvae"
-from minimdm.camdm import classifier as _camdm_classifier  # noqa: F401  kind "style_classifier"
-from minimdm.camdm import model as _camdm_model  # noqa: F401  kind "camdm"
-from minimdm.rl import nets as _rl_nets  # noqa: F401  kind "policy"
-
 __all__ = ["__version__", "pretrained", "rollout", "CHECKPOINT_DIR"]
 
 CHECKPOINT_DIR = Path(

@@ -23,6 +23,7 @@ precision only where the metadata records it), finite parameters.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -86,6 +87,21 @@ class CheckpointError(InputError):
 _BUILDERS: dict[str, Callable[[dict], nn.Module]] = {}
 _SPECS: list[tuple[type, str, Callable[[nn.Module], dict]]] = []
 
+KIND_MODULES: dict[str, str] = {
+    "amdm": "minimdm.amdm.models",
+    "mse": "minimdm.amdm.models",
+    "mvae": "minimdm.amdm.models",
+    "camdm": "minimdm.camdm.model",
+    "style_classifier": "minimdm.camdm.classifier",
+    "ddgan": "minimdm.aamdm.model",
+    "ddgan_generator": "minimdm.aamdm.nets",
+    "aamdm_motion": "minimdm.aamdm.motion",
+    "policy": "minimdm.rl.nets",
+}
+"""Where each shipped network kind is defined. That module registers its kind when it is
+imported (:func:`register_model_kind`); :func:`build_model` imports it on first use, so that
+``import minimdm`` loads none of them."""
+
 
 def register_model_kind(
     kind: str, cls: type, build: Callable[[dict], nn.Module], spec: Callable[[nn.Module], dict]
@@ -112,8 +128,11 @@ def build_model(spec: dict) -> nn.Module:
     if not isinstance(spec, dict):
         raise ValueError(f"model spec must be a dict with 'kind' and 'config', got {spec!r}")
     kind = spec.get("kind")
+    if kind not in _BUILDERS and isinstance(kind, str) and kind in KIND_MODULES:
+        importlib.import_module(KIND_MODULES[kind])  # registers the kind
     if kind not in _BUILDERS:
-        raise ValueError(f"model kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
+        known = sorted(set(_BUILDERS) | set(KIND_MODULES))
+        raise ValueError(f"model kind must be one of {known}, got {kind!r}")
     config = spec.get("config")
     if not isinstance(config, dict):
         raise ValueError(f"model config of kind {kind!r} must be a dict, got {config!r}")

@@ -106,3 +106,40 @@ def test_every_module_imports_in_a_fresh_interpreter():
         env={"VTK_DEFAULT_OPENGL_WINDOW": "vtkEGLRenderWindow", "PATH": "/usr/bin:/bin"},
     )
     assert r.returncode == 0, r.stderr[-3000:]
+
+
+def _fresh(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=PKG.parent
+    )
+
+
+def test_import_minimdm_is_light_and_has_no_side_effects():
+    code = (
+        "import os, sys\nbefore = dict(os.environ)\nimport minimdm\n"
+        "heavy = sorted(m for m in ('torch', 'gymnasium', 'stable_baselines3', 'pyvista') "
+        "if m in sys.modules)\n"
+        "print(heavy, dict(os.environ) == before)\n"
+    )
+    r = _fresh(code)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["[]", "True"], r.stdout
+
+
+def test_every_shipped_kind_is_found_without_importing_its_module_first():
+    from minimdm import checkpoint
+
+    for kind, module in checkpoint.KIND_MODULES.items():
+        assert module in MODULES, (kind, module)
+    code = (
+        "import sys\nfrom minimdm.checkpoint import KIND_MODULES, build_model\n"
+        "for kind, module in KIND_MODULES.items():\n"
+        "    try:\n        build_model({'kind': kind, 'config': {'no_such_field': 1}})\n"
+        "    except ValueError as e:\n"
+        "        assert 'does not build' in str(e), (kind, e)\n"
+        "    assert module in sys.modules, (kind, module)\n"
+        "print('ok')\n"
+    )
+    r = _fresh(code)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip() == "ok"

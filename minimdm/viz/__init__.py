@@ -37,21 +37,15 @@ trails), :mod:`~minimdm.viz.render` (the pyvista and matplotlib renderers),
 :mod:`~minimdm.viz.webplayer` (:func:`player`; its JavaScript is in ``static/``).
 """
 
-import os
-
-# Off-screen VTK through EGL; must be set before vtk is first imported (pyvista is imported
-# lazily, inside the functions that render).
-os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-
 # The private helpers ``_build_scene`` and ``_render`` are re-exported for tests and benchmarks.
 # Module state (``_PYVISTA_ERROR``) and ``_PyvistaRenderer`` live in :mod:`.render`: read or
 # patch them there (``viz.render._PYVISTA_ERROR``); a copy here would not follow them.
-from .animation import Animation, animate, render_frame  # noqa: E402
-from .plots import filmstrip, plot_trajectories, scrubber  # noqa: E402
-from .render import _render as _render  # noqa: E402
-from .scene import GENERATED, PALETTE, REAL, TARGET  # noqa: E402
-from .scene import _build_scene as _build_scene  # noqa: E402
-from .webplayer import Player, player  # noqa: E402
+from .animation import Animation, animate, render_frame
+from .plots import filmstrip, plot_trajectories, scrubber
+from .render import _render as _render
+from .scene import GENERATED, PALETTE, REAL, TARGET
+from .scene import _build_scene as _build_scene
+from .webplayer import Player, player
 
 __all__ = [
     "REAL",
