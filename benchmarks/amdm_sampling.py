@@ -32,11 +32,15 @@ def ms_per_frame(model, schedule, batch: int, device: str, frames: int = 5) -> f
     D = model.config.x_dim
     g = torch.Generator(device=device).manual_seed(0)
     cond = torch.randn(batch, D, device=device, generator=g)
-    ddpm_sample(model, schedule, (batch, D), cond, g, predicts=model.predicts)  # warm-up
+    ddpm_sample(
+        model, schedule, (batch, D), cond=cond, generator=g, predicts=model.predicts
+    )  # warm-up
     sync(device)
     t0 = time.perf_counter()
     for _ in range(frames):
-        cond = ddpm_sample(model, schedule, (batch, D), cond, g, predicts=model.predicts)
+        cond = ddpm_sample(
+            model, schedule, (batch, D), cond=cond, generator=g, predicts=model.predicts
+        )
     sync(device)
     return (time.perf_counter() - t0) / frames * 1e3
 

@@ -219,7 +219,7 @@ class Setting:
         walk_pos = torch.cat([torch.as_tensor(c.positions) for c in walks])
         self.offsets = metrics.foot_contact_offsets(walk_pos, self.skeleton.foot_indices)
         self.amdm_ckpt = minimdm.pretrained("amdm")
-        self.amdm = C.as_control_model(self.amdm_ckpt)
+        self.amdm = C.Sampler.load(self.amdm_ckpt)
         self.amdm_starts = torch.stack(
             [
                 evaluation.initial_state(self.amdm_ckpt, n, START_FRAME).features

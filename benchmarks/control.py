@@ -92,7 +92,7 @@ def quality(pos: torch.Tensor, skeleton, offsets) -> dict:
 def next_frame_spread(models: dict, mse, args) -> None:
     from minimdm.studies.locomotion import locomotion_takes
 
-    ref = C.as_control_model(mse)  # its normalizer: the training frames' spread, feature_scale 1
+    ref = C.Sampler.load(mse)  # its normalizer: the training frames' spread, feature_scale 1
     takes = locomotion_takes(mse.config.get("corpus") or "bandai-namco-1")
     pairs = [encode_pairs(c) for c in takes]
     prev, nxt = torch.cat([p for p, _ in pairs]), torch.cat([n for _, n in pairs])  # raw features
@@ -112,7 +112,7 @@ def next_frame_spread(models: dict, mse, args) -> None:
     P = 32
     for name, cm in models.items():
         g = torch.Generator().manual_seed(args.seed + 1)
-        x = C.sample_frame(cm, cm.normalize(prev).repeat_interleave(P, 0), g)
+        x = cm.frame(cm.normalize(prev).repeat_interleave(P, 0), g)
         x = ref.normalize(cm.denormalize(x)).view(len(prev), P, -1)
         emit({"bench": "next_frame_spread", "model": name, "contexts": len(prev), "samples": P,
               **rms(x.std(1)), "mean_error": rms(x.mean(1) - ref.normalize(nxt))})  # fmt: skip
@@ -138,7 +138,7 @@ def speed_gain(models: dict, corpus: str, args) -> None:
         for clip, (prev, nxt) in zip(takes, pairs, strict=True):
             g = torch.Generator().manual_seed(args.seed)
             with torch.no_grad():
-                x = C.sample_frame(cm, cm.normalize(prev).repeat_interleave(P, 0), g)
+                x = cm.frame(cm.normalize(prev).repeat_interleave(P, 0), g)
             x = cm.denormalize(x).view(len(prev), P, -1)
             root = cm.layout.root_vel
             content = clip.labels["content"]
@@ -237,7 +237,7 @@ def inpainting(label, cm, start, skeleton, offsets, head_height, args) -> None:
             generator=g,
             normalizer=cm.normalizer,
             schedule=cm.schedule,
-            clip_x0=cm.clip_x0,
+            clip_x0=cm.settings.clip_x0,
             start_pose=dict(xy=root.start_pose.xy, heading=root.start_pose.heading),
         )
         results = {"random_sampling": free.positions[0]}
@@ -274,7 +274,7 @@ def inbetweening(label, cm, start, test, skeleton, offsets, args) -> None:
         lerp = C.lerp_inbetween(cm, start, key, N)
         g = torch.Generator().manual_seed(args.seed)
         free = rollout(cm.net, start[None], N, K, generator=g, normalizer=cm.normalizer,
-                       schedule=cm.schedule, clip_x0=cm.clip_x0)  # fmt: skip
+                       schedule=cm.schedule, clip_x0=cm.settings.clip_x0)  # fmt: skip
         for method, feats, pos in [
             ("inbetween_eq5", m.features, m.positions),
             ("linear_interpolation", lerp.features[None], lerp.positions[None]),
@@ -307,7 +307,7 @@ def speed(cm, start, args) -> None:
     cases = {
         "rollout": lambda g: rollout(cm.net, start[None], F, 1, generator=g,
                                      normalizer=cm.normalizer, schedule=cm.schedule,
-                                     clip_x0=cm.clip_x0),
+                                     clip_x0=cm.settings.clip_x0),
         "beam_search_P32_H1": lambda g: C.beam_search(cm, start, C.target_score(goal), F,
                                                       pool=32, horizon=1, generator=g),
         "beam_search_P100_H1": lambda g: C.beam_search(cm, start, C.target_score(goal), F,
@@ -384,18 +384,18 @@ def main() -> None:
             p.error(f"no default start state for corpus {corpus!r}: pass --start TAKE@FRAME")
         args.start = "@".join(map(str, START[corpus]))
     take, frame = args.start.rsplit("@", 1)
-    amdm = C.as_control_model(amdm_ckpt)
+    amdm = C.Sampler.load(amdm_ckpt)
     start = evaluation.initial_state(amdm_ckpt, take, int(frame)).features  # (D,)
     emit({"bench": "config", **vars(args), "corpus": corpus, **hardware()})
     extras = {}
     for item in args.extra:
         name, spec = item.split("=", 1)
-        extras[name] = C.as_control_model(load(spec))
+        extras[name] = C.Sampler.load(load(spec))
     if {"target", "spread", "gain"} & set(args.only):
-        models = {"amdm": amdm, "mvae": C.as_control_model(load(args.mvae))}
+        models = {"amdm": amdm, "mvae": C.Sampler.load(load(args.mvae))}
         mse = load(args.mse)
-        models["mse"] = C.as_control_model(mse)
-        models["mse+gauss"] = C.as_control_model(
+        models["mse"] = C.Sampler.load(mse)
+        models["mse+gauss"] = C.Sampler.load(
             mse, noise=C.regressor_noise(mse, evaluation.checkpoint_clips(mse))
         )
         models.update(extras)

@@ -46,8 +46,8 @@ import torch
 from common import ROOT, emit, hardware
 
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
-from minimdm.control.core import ControlModel
-from minimdm.diffusion import NoiseSchedule
+from minimdm.amdm.sampling import Sampler
+from minimdm.diffusion import NoiseSchedule, StepSettings
 from minimdm.fast import AMDMFrame, CAMDMPlan, FastFrame, export_onnx, frame_graph
 from minimdm.utils import num_threads
 
@@ -115,7 +115,8 @@ def paper_graph() -> AMDMFrame:
     torch.manual_seed(0)
     D = 255  # the book's frame size
     net = MLPDenoiser(DenoiserConfig(D, D, 1024, 10, 128, "eps")).eval()
-    return AMDMFrame(ControlModel(net, None, NoiseSchedule("cosine", 40), "eps", 3.0))
+    settings = StepSettings(predicts="eps", clip_x0=3.0)
+    return AMDMFrame(Sampler(net, schedule=NoiseSchedule("cosine", 40), settings=settings))
 
 
 def inputs(graph, batch: int):

@@ -500,7 +500,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     emit({"bench": "config", **vars(args), **hardware()}, OUT)
     amdm_ckpt = minimdm.pretrained("amdm")
-    amdm = C.as_control_model(amdm_ckpt)
+    amdm = C.Sampler.load(amdm_ckpt)
     start = evaluation.initial_state(amdm_ckpt, *START).features  # (D,)
     test = evaluation.checkpoint_clips(amdm_ckpt, split="test")
     skeleton = test[START[0]].skeleton

@@ -41,7 +41,7 @@ from minimdm.checkpoint import (
 )
 from minimdm.cli import main
 from minimdm.config import load_config
-from minimdm.control import as_control_model, beam_search, inbetween, inpaint, lerp_inbetween
+from minimdm.control import Sampler, beam_search, inbetween, inpaint, lerp_inbetween
 from minimdm.fast import FastFrame, export_onnx, frame_graph
 from minimdm.files import LOCK_NAME, LockedError, RunLock, WriteError, atomic_write
 from minimdm.motion.bvh import BVHError, load_bvh, save_bvh
@@ -201,10 +201,10 @@ api("rollout/clip_x0 short pair", ValueError, ("clip_x0", f"{D} values"),
     lambda c: R(c.ck, c.x0, 2, clip_x0=([0.0], [1.0])))  # fmt: skip
 api("rollout/clip_x0 lo>hi", ValueError, ("clip_x0", "lo <= hi"),
     lambda c: R(c.ck, c.x0, 2, clip_x0=(torch.ones(D), torch.zeros(D))))  # fmt: skip
-api("rollout/model=5", InputTypeError, ("model_or_checkpoint", "int"), lambda c: R(5, c.x0, 2))
+api("rollout/model=5", InputTypeError, ("model", "int"), lambda c: R(5, c.x0, 2))
 api("rollout/model path missing", FileNotFoundError, ("no checkpoint", "nowhere"),
     lambda c: R(c.root / "nowhere", c.x0, 2))  # fmt: skip
-api("rollout/not a motion model", InputError, ("model_or_checkpoint", "Linear"),
+api("rollout/not a motion model", InputError, ("model", "Linear"),
     lambda c: R(torch.nn.Linear(D, D), c.x0, 2))  # fmt: skip
 api("rollout/bare denoiser, no schedule", InputError, ("schedule",),
     lambda c: R(c.ck.model, c.x0, 2))  # fmt: skip
@@ -348,17 +348,17 @@ api("beam_search/start NaN", InputError, ("start", "finite"),
     lambda c: BS(c.ck, c.x0 * float("nan"), score, 2))  # fmt: skip
 api("beam_search/n_frames=0", InputError, ("n_frames", ">= 1"),
     lambda c: BS(c.ck, c.x0, score, 0))  # fmt: skip
-api("as_control_model/steps=0", InputError, ("steps", ">= 1"),
-    lambda c: as_control_model(c.ck, steps=0))  # fmt: skip
-api("as_control_model/steps>T", InputError, ("steps", f"T={T}"),
-    lambda c: as_control_model(c.ck, steps=9))  # fmt: skip
-api("as_control_model/eta=-1", InputError, ("eta", ">= 0"),
-    lambda c: as_control_model(c.ck, eta=-1))  # fmt: skip
-api("as_control_model/device=banana", InputError, ("device", "banana"),
-    lambda c: as_control_model(c.ck, device="banana"))  # fmt: skip
-api("as_control_model/model=5", InputTypeError, ("model", "int"), lambda c: as_control_model(5))
-api("as_control_model/clip_x0=0", ValueError, ("clip_x0", "> 0"),
-    lambda c: as_control_model(c.ck, clip_x0=0))  # fmt: skip
+api("Sampler.load/steps=0", InputError, ("steps", ">= 1"),
+    lambda c: Sampler.load(c.ck, steps=0))  # fmt: skip
+api("Sampler.load/steps>T", InputError, ("steps", f"T={T}"),
+    lambda c: Sampler.load(c.ck, steps=9))  # fmt: skip
+api("Sampler.load/eta=-1", InputError, ("eta", ">= 0"),
+    lambda c: Sampler.load(c.ck, eta=-1))  # fmt: skip
+api("Sampler.load/device=banana", InputError, ("device", "banana"),
+    lambda c: Sampler.load(c.ck, device="banana"))  # fmt: skip
+api("Sampler.load/model=5", InputTypeError, ("model", "int"), lambda c: Sampler.load(5))
+api("Sampler.load/clip_x0=0", ValueError, ("clip_x0", "> 0"),
+    lambda c: Sampler.load(c.ck, clip_x0=0))  # fmt: skip
 
 # --- motion helpers --------------------------------------------------------------------------
 api("start_pose_of/frame beyond clip", InputError, ("frame", "99"),
@@ -988,9 +988,9 @@ api(
 )
 api("fast/a string state", InputTypeError, ("state", "tensor", "str"),
     lambda c: fast(c)("abc", gen()))  # fmt: skip
-api("rollout/sampler exported from another checkpoint", InputError,
-    ("sampler", "another model", "other_ckpt", "weights"),
-    lambda c: R(other_checkpoint(c), c.x0, 2, sampler=fast(c)))  # fmt: skip
+api("rollout/fast graph exported from another checkpoint", InputError,
+    ("fast", "another model", "other_ckpt", "weights"),
+    lambda c: R(other_checkpoint(c), c.x0, 2, fast=fast(c)))  # fmt: skip
 api("RLConfig/num_envs=2.7", InputTypeError, ("num_envs", "integer", "2.7"),
     lambda c: RLConfig(num_envs=2.7))  # fmt: skip
 api("RLConfig/gamma=nan", InputError, ("gamma", "finite"), lambda c: RLConfig(gamma=NAN))
@@ -1066,7 +1066,7 @@ def steering_env(c, starts=None, **kw):
     from minimdm.rl.residual import ResidualSchedule
     from minimdm.rl.tasks import make_task
 
-    cm = as_control_model(c.ck)
+    cm = Sampler.load(c.ck)
     steer = ResidualSteerer(cm, ResidualSchedule.top(T, 2, tied=True), "all")
     starts = encode(c.clip) if starts is None else starts
     return SteeringVecEnv(cm, steer, make_task("target"), starts, **{"num_envs": 2, **kw})

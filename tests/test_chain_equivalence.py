@@ -173,8 +173,9 @@ def test_ddpm_is_bit_identical_to_the_old_loop(predicts, clip_x0, t_start, hooke
     h_old, h_new = (Recording(), Recording()) if hooked else (None, None)
     old = old_ddpm(model, s, (5, 3), cond, torch.Generator().manual_seed(1), h_old, predicts,
                    t_start, x_start, clip_x0)  # fmt: skip
-    new = ddpm_sample(model, s, (5, 3), cond, torch.Generator().manual_seed(1), h_new, predicts,
-                      t_start=t_start, x_start=x_start, clip_x0=clip_x0)  # fmt: skip
+    new = ddpm_sample(model, s, (5, 3), cond=cond, generator=torch.Generator().manual_seed(1),
+                      hook=h_new, predicts=predicts, t_start=t_start, x_start=x_start,
+                      clip_x0=clip_x0)  # fmt: skip
     assert torch.equal(old, new)
     if hooked:
         assert_same_calls(h_old, h_new)
@@ -191,8 +192,9 @@ def test_ddim_is_bit_identical_to_the_old_loop(predicts, clip_x0, steps, eta, ho
     x_start = torch.randn(4, 3) if hooked else None
     old = old_ddim(model, s, (4, 3), cond, steps, eta, torch.Generator().manual_seed(2), h_old,
                    predicts, x_start, clip_x0)  # fmt: skip
-    new = ddim_sample(model, s, (4, 3), cond, steps, eta, torch.Generator().manual_seed(2), h_new,
-                      predicts, x_start=x_start, clip_x0=clip_x0)  # fmt: skip
+    new = ddim_sample(model, s, (4, 3), cond=cond, steps=steps, eta=eta,
+                      generator=torch.Generator().manual_seed(2), hook=h_new, predicts=predicts,
+                      x_start=x_start, clip_x0=clip_x0)  # fmt: skip
     assert torch.equal(old, new)
     if hooked:
         assert_same_calls(h_old, h_new)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from minimdm import control as C
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.amdm.sampling import rollout
+from minimdm.amdm.sampling import Sampler, rollout
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import NoiseSchedule, ddpm_sample, q_sample
 from minimdm.motion.features import FeatureLayout, Normalizer, decode_root
@@ -78,7 +78,9 @@ def test_inpaint_hook_is_applied_after_every_step_at_the_right_level():
         return out
 
     cond = torch.randn(B, D)
-    x = ddpm_sample(net, schedule, (B, D), cond, torch.Generator().manual_seed(0), spy)
+    x = ddpm_sample(
+        net, schedule, (B, D), cond=cond, generator=torch.Generator().manual_seed(0), hook=spy
+    )
     assert [t for t, _, _ in seen] == [3, 2, 1, 0, -1]  # after each of the 5 steps
     replay = torch.Generator().manual_seed(7)  # the hook's own noise, replayed
     for t, before, after in seen:
@@ -117,9 +119,7 @@ def test_inbetween_t_start_follows_eq5():
 def test_inbetween_starts_each_chain_from_the_noised_keyframe(tmp_path):
     ck = tiny_ckpt(tmp_path, T=8)
     net = Recorder()
-    cm = C.as_control_model(
-        net, schedule=ck.schedule(), normalizer=Normalizer.from_dict(ck.normalizer)
-    )
+    cm = Sampler.load(net, schedule=ck.schedule(), normalizer=Normalizer.from_dict(ck.normalizer))
     key = torch.randn(D) * 0.1
     N = 6
     m = C.inbetween(cm, start_state(), key, N + 2, torch.Generator().manual_seed(0), at=N)
@@ -284,7 +284,7 @@ def test_mse_baseline_needs_noise_for_distinct_candidates():
                   pool=4)  # fmt: skip
     assert torch.equal(futures[0].features[0, 0], futures[0].features[0, 3])  # all identical
     futures.clear()
-    noisy = C.as_control_model(mse, noise=0.1)
+    noisy = Sampler.load(mse, noise=0.1)
     C.beam_search(noisy, start_state(), lambda f: futures.append(f) or f.features[..., 0, 0], 2,
                   pool=4, generator=torch.Generator().manual_seed(0))  # fmt: skip
     assert not torch.equal(futures[0].features[0, 0], futures[0].features[0, 3])
@@ -390,7 +390,7 @@ def _train_walker(tmp_path_factory):
 
 def test_beam_search_reaches_a_nearby_target(walker):
     ck, clips = walker
-    cm = C.as_control_model(ck)
+    cm = Sampler.load(ck)
     start = C.clip_frame(clips["walk"], 10, cm.layout)
     goal = torch.tensor([1.5, 1.0])
     g = torch.Generator().manual_seed(0)
@@ -405,7 +405,7 @@ def test_beam_search_reaches_a_nearby_target(walker):
 
 def test_inbetweening_lands_on_the_keyframe(walker):
     ck, clips = walker
-    cm = C.as_control_model(ck)
+    cm = Sampler.load(ck)
     start = C.clip_frame(clips["walk"], 10, cm.layout)
     key = C.clip_frame(clips["run"], 12, cm.layout)
     B, N = 8, 30
@@ -421,7 +421,7 @@ def test_inbetweening_lands_on_the_keyframe(walker):
     assert err < 4.0, err
     assert err_free > 3 * err
     # DDIM: each frame's chain starts at its t_0 and follows the DDIM grid below it
-    ddim = C.as_control_model(ck, steps=cm.schedule.T // 2, eta=1.0)
+    ddim = Sampler.load(ck, steps=cm.schedule.T // 2, eta=1.0)
     m = C.inbetween(ddim, start.expand(B, -1), key, N, torch.Generator().manual_seed(0))
     err_ddim = (m.features[:, -1, pos] - key[pos]).unflatten(-1, (15, 3)).norm(dim=-1).mean() * 100
     assert err_ddim < 4.0 and err_free > 3 * err_ddim, (err_ddim, err_free)
@@ -447,7 +447,7 @@ def _old_beam(cm, x0, score_fn, n_frames, P, H, generator, commit, stop_fn):
         c = cond[active].repeat_interleave(P, dim=0)
         cand = torch.empty(b * P, H, D, dtype=c.dtype, device=c.device)
         for h in range(H):
-            c = C.sample_frame(cm, c, generator, frame=f + 1 + h)
+            c = cm.frame(c, generator)
             cand[:, h] = c
         cand = cand.reshape(b, P, H, D)
         future = Future(cm.denormalize(cand).float(), xy[active], heading[active], active, f)
@@ -475,7 +475,7 @@ def _old_beam(cm, x0, score_fn, n_frames, P, H, generator, commit, stop_fn):
 
 @pytest.mark.parametrize("H,commit", [(1, 1), (3, 2)])
 def test_beam_search_is_bit_identical_to_the_old_loops(tmp_path, H, commit):
-    cm = C.as_control_model(tiny_ckpt(tmp_path))
+    cm = Sampler.load(tiny_ckpt(tmp_path))
 
     def score(future):
         return future.features[..., 0].sum(-1)
@@ -500,7 +500,7 @@ def test_beam_search_is_bit_identical_to_the_old_loops(tmp_path, H, commit):
 
 
 def test_inpaint_and_inbetween_are_bit_identical_to_the_old_loops(tmp_path):
-    cm = C.as_control_model(tiny_ckpt(tmp_path))
+    cm = Sampler.load(tiny_ckpt(tmp_path))
     x0 = start_state(2)
     tgt = torch.randn(5, D, generator=torch.Generator().manual_seed(2))
     mask = torch.zeros(D, dtype=torch.bool)
@@ -510,7 +510,7 @@ def test_inpaint_and_inbetween_are_bit_identical_to_the_old_loops(tmp_path):
     tgt_n, cond, old = cm.normalize(tgt.expand(2, 5, D)), cm.normalize(x0), []
     for f in range(5):
         hook = C.inpaint_hook(cm.schedule, tgt_n[:, f], mask.expand(2, D), g, 1)
-        cond = C.sample_frame(cm, cond, g, hook=hook, frame=f + 1)
+        cond = cm.frame(cond, g, hook=hook)
         old.append(cond)
     assert torch.equal(m.normalized, torch.stack(old, 1))
 
@@ -523,31 +523,30 @@ def test_inpaint_and_inbetween_are_bit_identical_to_the_old_loops(tmp_path):
         if k < 2:
             t0 = C.inbetween_t_start(f - prev, ats[k] - prev, T)
             x_start = q_sample(cm.schedule, keys_n[k].expand(2, D), t0, generator=g)
-            cond = C.sample_frame(cm, cond, g, t_start=t0, x_start=x_start, frame=f)
+            cond = cm.frame(cond, g, t_start=t0, x_start=x_start)
             if f == ats[k]:
                 k, prev = k + 1, f
         else:
-            cond = C.sample_frame(cm, cond, g, frame=f)
+            cond = cm.frame(cond, g)
         old.append(cond)
     assert torch.equal(m.normalized, torch.stack(old, 1))
 
 
 @pytest.mark.parametrize("k", [1, 3])
 def test_every_technique_names_the_frame_where_the_model_returns_nan(tmp_path, monkeypatch, k):
-    from minimdm.amdm.sampling import NonFiniteFrameError, next_frame
-    from minimdm.control import core
+    from minimdm.amdm.sampling import NonFiniteFrameError
 
-    calls = []
+    calls, frame = [], Sampler.frame
 
     def poisoned(*args, **kwargs):  # NaN in batch row 1 from the k-th frame on
-        x = next_frame(*args, **kwargs)
+        x = frame(*args, **kwargs)
         calls.append(1)
         if len(calls) >= k:
             x = x.clone()
             x[1, 0] = float("nan")
         return x
 
-    monkeypatch.setattr(core, "next_frame", poisoned)
+    monkeypatch.setattr(Sampler, "frame", poisoned)
     ck, x0 = tiny_ckpt(tmp_path), start_state(2)
     runs = {
         r"beam search .*frame {k} .*character 0, candidate 1": lambda: C.beam_search(

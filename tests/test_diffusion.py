@@ -216,10 +216,22 @@ def test_ddim_eta0_deterministic_given_start():
     cond = torch.randn(6, 2)
     x_T = torch.randn(6, 2)
     a = ddim_sample(
-        model, s, (6, 2), cond, steps=5, x_start=x_T, generator=torch.Generator().manual_seed(0)
+        model,
+        s,
+        (6, 2),
+        cond=cond,
+        steps=5,
+        x_start=x_T,
+        generator=torch.Generator().manual_seed(0),
     )
     b = ddim_sample(
-        model, s, (6, 2), cond, steps=5, x_start=x_T, generator=torch.Generator().manual_seed(9)
+        model,
+        s,
+        (6, 2),
+        cond=cond,
+        steps=5,
+        x_start=x_T,
+        generator=torch.Generator().manual_seed(9),
     )
     torch.testing.assert_close(a, b, rtol=0, atol=0)
 
@@ -301,7 +313,7 @@ def test_hook_order_ddim(steps):
         tiny_model(),
         s,
         (3, 2),
-        torch.zeros(3, 2),
+        cond=torch.zeros(3, 2),
         steps=steps,
         hook=lambda t, x, x0: seen.append(t) or x,
     )
@@ -316,8 +328,8 @@ def test_hook_output_is_used():
     s = NoiseSchedule("cosine", 5)
     hook = lambda t, x, x0: torch.zeros_like(x) if t == -1 else x  # noqa: E731
     for out in (
-        ddpm_sample(tiny_model(), s, (4, 2), torch.ones(4, 2), hook=hook),
-        ddim_sample(tiny_model(), s, (4, 2), torch.ones(4, 2), hook=hook),
+        ddpm_sample(tiny_model(), s, (4, 2), cond=torch.ones(4, 2), hook=hook),
+        ddim_sample(tiny_model(), s, (4, 2), cond=torch.ones(4, 2), hook=hook),
     ):
         assert (out == 0).all()
 
@@ -329,10 +341,12 @@ def test_partial_chain_t_start_x_start():
     cond = torch.randn(5, 2)
     # a full chain equals starting at T-1 from the same noise
     g = torch.Generator().manual_seed(4)
-    full = ddpm_sample(model, s, (5, 2), cond, generator=g)
+    full = ddpm_sample(model, s, (5, 2), cond=cond, generator=g)
     g = torch.Generator().manual_seed(4)
     x_T = torch.randn(5, 2, generator=g)
-    torch.testing.assert_close(ddpm_sample(model, s, (5, 2), cond, generator=g, x_start=x_T), full)
+    torch.testing.assert_close(
+        ddpm_sample(model, s, (5, 2), cond=cond, generator=g, x_start=x_T), full
+    )
     # a chain from level 3 runs exactly 4 steps: the same as calling p_sample by hand
     x3 = torch.randn(5, 2)
     seen = []
@@ -341,7 +355,7 @@ def test_partial_chain_t_start_x_start():
         model,
         s,
         (5, 2),
-        cond,
+        cond=cond,
         generator=g,
         t_start=3,
         x_start=x3,
@@ -520,23 +534,35 @@ def test_ddim_t_start_follows_the_grid_below_it(steps, t_start):
     assert torch.equal(out, torch.full((2, 2), 0.3))
     # starting at T - 1 is the plain chain
     g1, g2 = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
-    a = ddim_sample(tiny_model(), s, (2, 2), torch.zeros(2, 2), steps, 1.0, g1, t_start=T - 1)
-    b = ddim_sample(tiny_model(), s, (2, 2), torch.zeros(2, 2), steps, 1.0, g2)
+    a = ddim_sample(
+        tiny_model(),
+        s,
+        (2, 2),
+        cond=torch.zeros(2, 2),
+        steps=steps,
+        eta=1.0,
+        generator=g1,
+        t_start=T - 1,
+    )
+    b = ddim_sample(
+        tiny_model(), s, (2, 2), cond=torch.zeros(2, 2), steps=steps, eta=1.0, generator=g2
+    )
     assert torch.equal(a, b)
     with pytest.raises(ValueError, match="t_start"):
         ddim_sample(net, s, (2, 2), steps=steps, t_start=T)
 
 
-def test_next_frame_passes_t_start_to_ddim():
-    from minimdm.amdm.sampling import next_frame
+def test_sampler_frame_passes_t_start_to_ddim():
+    from minimdm.amdm.sampling import Sampler
+    from minimdm.diffusion import StepSettings
 
     torch.manual_seed(0)
     model = MLPDenoiser(DenoiserConfig(2, 2, width=16, depth=2, time_dim=8, predicts="x0"))
     levels = []
     model.register_forward_pre_hook(lambda m, args: levels.append(int(args[1][0])))
     s = NoiseSchedule("cosine", 20)
-    next_frame(model, torch.zeros(3, 2), None, s, steps=5, eta=0.0, predicts="x0",
-               t_start=9, x_start=torch.randn(3, 2))  # fmt: skip
+    sampler = Sampler(model, schedule=s, settings=StepSettings(5, 0.0, "x0"))
+    sampler.frame(torch.zeros(3, 2), None, t_start=9, x_start=torch.randn(3, 2))
     assert levels == ddim_timesteps(20, 5, 9) and levels[0] == 9
 
 
@@ -622,7 +648,7 @@ def test_bad_clamp_raises_naming_clip_x0(bad, match):
         clip_bounds(bad, 2)
     for sampler in (ddpm_sample, ddim_sample):
         with pytest.raises(ValueError, match="clip_x0"):
-            sampler(tiny_model(), s, (3, 2), torch.zeros(3, 2), clip_x0=bad)
+            sampler(tiny_model(), s, (3, 2), cond=torch.zeros(3, 2), clip_x0=bad)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -96,7 +96,7 @@ def test_rollout_takes_the_fast_frame_as_its_sampler(built):
     eager = rollout(ckpt, start, 6, n_samples=2, generator=torch.Generator().manual_seed(3))
     fast = rollout(
         ckpt, start, 6, n_samples=2, generator=torch.Generator().manual_seed(3),
-        sampler=FastFrame(data),
+        fast=FastFrame(data),
     )  # fmt: skip
     assert (fast.normalized - eager.normalized).abs().max().item() < TOL
     assert fast.positions.shape == eager.positions.shape
@@ -110,11 +110,11 @@ def test_rollout_aamdm_takes_the_fast_frame_as_its_sampler(built):
     y, x = m.y_mean[None].repeat(2, 1), m.x_mean[None].repeat(2, 1)
     eager = rollout_aamdm(m, y, x, 8, generator=torch.Generator().manual_seed(0))
     fast = rollout_aamdm(
-        m, y, x, 8, generator=torch.Generator().manual_seed(0), sampler=FastFrame(data)
+        m, y, x, 8, generator=torch.Generator().manual_seed(0), fast=FastFrame(data)
     )
     assert (fast.normalized - eager.normalized).abs().max().item() < TOL
     with pytest.raises(ValueError, match="guidance and T_adm need the eager step"):
-        rollout_aamdm(m, y, x, 2, sampler=FastFrame(data), T_adm=0)
+        rollout_aamdm(m, y, x, 2, fast=FastFrame(data), T_adm=0)
 
 
 def test_exported_file_runs_in_bare_onnxruntime_and_keeps_its_metadata(built, tmp_path):

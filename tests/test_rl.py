@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minimdm
+from minimdm.amdm.sampling import Sampler
 from minimdm.checkpoint import CheckpointMismatchError
-from minimdm.control.core import as_control_model
 from minimdm.diffusion import DDIMStep, NoiseSchedule, reverse_chain
 from minimdm.motion import metrics
 from minimdm.motion.features import decode
@@ -267,14 +267,14 @@ def test_path_episode_ends_when_the_character_leaves_the_path():
 def test_single_character_env_passes_gymnasiums_checker(base, starts, task):
     from gymnasium.utils.env_checker import check_env
 
-    cm = as_control_model(base)
+    cm = Sampler.load(base)
     env = SteeringEnv(cm, ResidualSteerer(cm, ResidualSchedule.top(20, 4), "root"), task(), starts)
     with pytest.warns(UserWarning, match="infinity"):  # unbounded frames: Box(-inf, inf)
         check_env(env, skip_render_check=True)
 
 
 def test_one_batched_model_call_per_level_steps_every_character(base, starts):
-    cm = as_control_model(base)
+    cm = Sampler.load(base)
     env = SteeringVecEnv(
         cm, ResidualSteerer(cm, ResidualSchedule.top(20, 5), "all"), TargetTask(), starts, 7
     )
@@ -289,7 +289,7 @@ def test_one_batched_model_call_per_level_steps_every_character(base, starts):
 
 
 def test_a_root_observing_env_shows_the_root_velocity_and_yaw_rate_then_the_task(base, starts):
-    cm = as_control_model(base)
+    cm = Sampler.load(base)
     steer = ResidualSteerer(cm, ResidualSchedule.top(20, 2, tied=True), "root")
     env = SteeringVecEnv(cm, steer, JoystickTask(), starts, 5, seed=0, observe="root")
     obs, _ = env.reset(seed=0)
@@ -303,7 +303,7 @@ def test_a_root_observing_env_shows_the_root_velocity_and_yaw_rate_then_the_task
 
 
 def test_vec_env_restarts_finished_episodes_in_the_same_step(base, starts):
-    cm = as_control_model(base)
+    cm = Sampler.load(base)
     steer = ResidualSteerer(cm, ResidualSchedule.top(20, 2), "root")
     env = SteeringVecEnv(cm, steer, JoystickTask(max_frames=3), starts, 4, seed=0)
     env.reset(seed=0)
@@ -366,7 +366,7 @@ def test_motion_penalty_is_the_libraries_bone_error_and_foot_sliding_of_each_new
 
 def test_latent_steerer_decodes_the_action_as_mvae_latent():
     mvae = minimdm.pretrained("mvae")
-    cm = as_control_model(mvae)
+    cm = Sampler.load(mvae)
     s = LatentSteerer(cm, scale=2.0)
     cond = torch.randn(5, cm.dim)
     a = torch.rand(5, s.action_dim) * 2 - 1
@@ -426,7 +426,7 @@ def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny
     assert meta["base"]["name"] == "amdm_halting" and meta["task"]["name"] == "target"
     assert meta["env_steps"] == config.total_steps
     steering = load_steering(out, task="target")
-    assert steering.steerer.schedule.levels == (19, 13) and steering.cm.steps == 4
+    assert steering.steerer.schedule.levels == (19, 13) and steering.cm.settings.steps == 4
     obs = torch.randn(9, steering.policy.obs_dim)
     sb3_actions, _ = result.model.predict(obs.numpy(), deterministic=True)
     assert np.allclose(steering.policy.act(obs).numpy(), sb3_actions, atol=1e-6)
@@ -455,7 +455,7 @@ def test_a_tied_residual_is_the_same_vector_at_every_chosen_level_weighted_by_w(
 
 def test_root_residuals_push_only_the_roots_velocity_and_yaw_rate(base):
     names = ["forward", "left", "yaw"]
-    cm = as_control_model(base)
+    cm = Sampler.load(base)
     lay = cm.layout
     steer = ResidualSteerer(cm, ResidualSchedule.top(20, 3, tied=True), "root")
     dims = {"forward": lay.root_vel.start, "left": lay.root_vel.start + 1}

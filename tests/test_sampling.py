@@ -3,16 +3,10 @@
 import pytest
 import torch
 
-from minimdm.amdm import sampling
 from minimdm.amdm.models import MVAE, DenoiserConfig, MLPDenoiser, MLPRegressor, MVAEConfig
-from minimdm.amdm.sampling import (
-    NonFiniteFrameError,
-    autoregress,
-    next_frame,
-    rollout,
-    sampler_settings,
-)
+from minimdm.amdm.sampling import NonFiniteFrameError, Sampler, autoregress, rollout
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
+from minimdm.diffusion import ddim_sample, ddpm_sample
 from minimdm.motion.features import Normalizer, StartPose, decode
 
 J = 2
@@ -125,7 +119,14 @@ def _old_sample_frames(model, x0, n_frames, K, normalizer, generator, schedule, 
     cond = cond.repeat_interleave(K, dim=0)
     out = torch.empty(C * K, n_frames, cond.shape[1], dtype=torch.float32)
     for f in range(n_frames):
-        x = next_frame(model, cond, generator, schedule, steps, eta, predicts, clip_x0)
+        if isinstance(model, MVAE):
+            x = model.sample(cond, generator)
+        elif steps is None:
+            x = ddpm_sample(model, schedule, tuple(cond.shape), cond=cond, generator=generator,
+                            predicts=predicts, clip_x0=clip_x0)  # fmt: skip
+        else:
+            x = ddim_sample(model, schedule, tuple(cond.shape), cond=cond, steps=steps, eta=eta,
+                            generator=generator, predicts=predicts, clip_x0=clip_x0)  # fmt: skip
         out[:, f] = x.float().cpu()
         cond = x
     return out.reshape(C, K, n_frames, -1)
@@ -134,7 +135,8 @@ def _old_sample_frames(model, x0, n_frames, K, normalizer, generator, schedule, 
 @pytest.mark.parametrize("steps", [None, 3])
 def test_rollout_is_bit_identical_to_the_old_loop(amdm_ckpt, steps):
     ck, norm = amdm_ckpt
-    r = rollout(ck, init_states(), 6, 3, steps, torch.Generator().manual_seed(4), clip_x0=2.0)
+    g = torch.Generator().manual_seed(4)
+    r = rollout(ck, init_states(), 6, 3, steps=steps, generator=g, clip_x0=2.0)
     old = _old_sample_frames(ck.model, init_states(), 6, 3, norm,
                              torch.Generator().manual_seed(4), ck.schedule(), steps, 1.0, "eps",
                              2.0)  # fmt: skip
@@ -175,40 +177,36 @@ def test_autoregress_feeds_each_frame_back_and_names_frame_and_row():
         autoregress(bad, torch.zeros(3, 2), 0)
 
 
-def poison_next_frame(monkeypatch, module, k: int, row: int):
-    """Make ``module.next_frame`` return NaN in ``row`` from its k-th call on (frame k)."""
-    calls = []
+def poison_frame(monkeypatch, k: int, row: int):
+    """Make ``Sampler.frame`` return NaN in ``row`` from its k-th call on (frame k)."""
+    calls, frame = [], Sampler.frame
 
     def wrapped(*args, **kwargs):
-        x = next_frame(*args, **kwargs)
+        x = frame(*args, **kwargs)
         calls.append(1)
         if len(calls) >= k:
             x = x.clone()
             x[row, 0] = float("nan")
         return x
 
-    monkeypatch.setattr(module, "next_frame", wrapped)
+    monkeypatch.setattr(Sampler, "frame", wrapped)
 
 
 @pytest.mark.parametrize("k", [1, 4])
 def test_rollout_names_the_frame_where_the_model_returns_nan(amdm_ckpt, monkeypatch, k):
     ck, _ = amdm_ckpt
-    poison_next_frame(monkeypatch, sampling, k, row=3)  # C K = 2 x 2: row 3 = character 1, 1
+    poison_frame(monkeypatch, k, row=3)  # C K = 2 x 2: row 3 = character 1, 1
     with pytest.raises(NonFiniteFrameError, match=rf"frame {k} .*character 1, sample 1") as e:
         rollout(ck, init_states(), 6, 2, generator=torch.Generator().manual_seed(0))
     assert e.value.frame == k
 
 
-def test_sampler_settings_pass_clip_x0_through_unchanged(tmp_path):
+def test_sampler_passes_clip_x0_through_unchanged(tmp_path):
     torch.manual_seed(0)
     model = MLPDenoiser(DenoiserConfig(D, D, width=16, depth=2, time_dim=8, predicts="x0"))
     clip = [[-1.0] * D, [2.0] * D]  # a per-feature range: interpreted by diffusion, not here
     meta = {"diffusion": {"schedule": "cosine", "T": 4, "clip_x0": clip}}
     save_checkpoint(tmp_path / "m", model, meta)
-    s = sampler_settings(load_checkpoint(tmp_path / "m"))
-    assert s.clip_x0 == clip and s.predicts == "x0"  # predicts: from the network when unsaid
+    s = Sampler.load(load_checkpoint(tmp_path / "m"))
+    assert s.settings.clip_x0 == clip and s.settings.predicts == "x0"  # from the network
     assert s.schedule.T == 4 and s.normalizer is None and s.layout is None
-    from minimdm.control import as_control_model
-
-    cm = as_control_model(load_checkpoint(tmp_path / "m"))
-    assert cm.clip_x0 == clip and cm.predicts == "x0"

@@ -143,22 +143,22 @@ def rollout_aamdm(
     direction: Tensor | float | None = None,
     guide_scale: float = 0.0,
     decode_positions: bool = True,
-    sampler: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
+    fast: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
 ) -> Rollout:
     """Sample ``n_samples`` futures of ``n_frames`` from each initial frame (C, D), (C, 12).
 
     ``T_adm = 0`` skips polishing (the GAN's draft is the frame). ``direction`` (C,) or a
     number: the commanded world heading in radians; with ``guide_scale`` > 0 each frame is
     guided towards it (eq. 13; the command is converted to the current heading frame).
-    ``Rollout.normalized`` holds the standardised xz. ``sampler(frame, generator) -> frame``
+    ``Rollout.normalized`` holds the standardised xz. ``fast(frame, generator) -> frame``
     replaces :func:`aamdm_frame` as the per-frame step, e.g. a
     :class:`minimdm.fast.FastFrame` of the same model (the same chain as one graph); guidance
     needs the eager step.
     """
-    if sampler is not None and (guide_scale > 0 or T_adm is not None):
-        raise ValueError("guidance and T_adm need the eager step: pass sampler=None with them")
-    if sampler is not None:  # a graph exported from another model is refused
-        check_same_model("sampler", sampler, model, "aamdm_motion", "the AAMDM model given")
+    if fast is not None and (guide_scale > 0 or T_adm is not None):
+        raise ValueError("guidance and T_adm need the eager step: pass fast=None with them")
+    if fast is not None:  # a graph exported from another model is refused
+        check_same_model("fast", fast, model, "aamdm_motion", "the AAMDM model given")
     if init_y.dim() != 2 or init_x.dim() != 2 or init_y.shape[0] != init_x.shape[0]:
         raise ValueError(
             f"init_y and init_x must be (C, D) and (C, {model.config.x_dim}), got "
@@ -191,8 +191,8 @@ def rollout_aamdm(
     def step(f: int, frame: Tensor) -> Tensor:
         """Frame f as [xz, y] (C K, XZ + D): sample the latent, then decode the pose."""
         nonlocal heading
-        if sampler is not None:
-            frame = sampler(frame, generator)
+        if fast is not None:
+            frame = fast(frame, generator)
         else:
             guide = None
             if direction is not None and guide_scale > 0:

@@ -289,7 +289,16 @@ def evaluate(
 
     def one_seed(seed: int) -> dict[str, float]:
         g = torch.Generator(device=device).manual_seed(seed)
-        r = rollout(ckpt, x0, P.apd_frames, P.n_samples, steps, g, start_pose=start, device=device)
+        r = rollout(
+            ckpt,
+            x0,
+            P.apd_frames,
+            P.n_samples,
+            steps=steps,
+            generator=g,
+            start_pose=start,
+            device=device,
+        )
         rows = []
         for c, s in enumerate(states):
             ref = s.reference
@@ -433,8 +442,8 @@ def drift(
         state.features,
         n_frames,
         n_samples,
-        steps,
-        g,
+        steps=steps,
+        generator=g,
         start_pose=_stack_start([state]),
         device=device,
     )
@@ -534,9 +543,15 @@ def memorisation_probe(
     def one_seed(seed: int) -> dict[str, float]:
         g = torch.Generator(device=device).manual_seed(seed)
         r = rollout(
-            ckpt, x0, protocol.apd_frames, protocol.n_samples, steps, g,
-            decode_positions=False, device=device,
-        )  # fmt: skip
+            ckpt,
+            x0,
+            protocol.apd_frames,
+            protocol.n_samples,
+            steps=steps,
+            generator=g,
+            decode_positions=False,
+            device=device,
+        )
         frames = r.features[:, :, ::frame_stride].cpu()  # (C, K, F / stride, D)
         return stats(pose_distance_to_training(ckpt, frames, training))
 

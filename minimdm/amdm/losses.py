@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from minimdm.diffusion import (
     NoiseSchedule,
+    StepSettings,
     clamp_x0,
     clip_bounds,
     diffusion_loss,
@@ -223,7 +224,7 @@ def window_loss(
     :math:`\\sqrt{\\bar\\alpha_t}`, which is tiny at the noisiest levels: the clamp keeps it
     bounded, and x0-prediction avoids the division. ``student_steps = k >= 1`` feeds back a
     real draw from the model instead, what the sampler will feed it at run time: the reverse
-    chain from the same condition (:func:`~minimdm.amdm.sampling.next_frame`, no gradient), over
+    chain from the same condition (:meth:`~minimdm.amdm.sampling.Sampler.frame`, no gradient), over
     all T steps (DDPM) when ``k = T``, else DDIM over ``k`` steps with :math:`\\eta = 1`. It
     costs ``k`` extra network calls per fed-back frame.
 
@@ -295,7 +296,7 @@ def _draw(
     bounds: Any,
 ) -> Tensor:
     """A frame drawn from the model by the sampler's own reverse chain (no gradient)."""
-    from minimdm.amdm.sampling import next_frame
+    from minimdm.amdm.sampling import Sampler
 
     if schedule is None:
         raise ValueError("schedule is required to draw from a denoiser")
@@ -303,8 +304,8 @@ def _draw(
     was_training = net.training
     net.eval()
     try:
-        return next_frame(net, cond, generator, schedule, min(steps, schedule.T), 1.0, predicts,
-                          bounds)  # fmt: skip
+        settings = StepSettings(min(steps, schedule.T), 1.0, predicts, bounds)
+        return Sampler(net, schedule=schedule, settings=settings).frame(cond, generator)
     finally:
         net.train(was_training)
 

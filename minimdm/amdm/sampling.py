@@ -14,15 +14,16 @@ differ only in the per-frame step they hand it. It never returns NaN: a non-fini
 :class:`NonFiniteFrameError` naming the frame and the first bad batch row (which the caller
 names as a character and sample).
 
-:func:`sampler_settings` is the one reader of a checkpoint's sampler settings (normalizer,
-schedule, ``predicts``, ``clip_x0``, layout, skeleton).
+:class:`Sampler` is the one reader of a checkpoint's sampler settings (normalizer, schedule,
+``predicts``, ``clip_x0``, layout, skeleton) and draws one frame; :func:`rollout`, the control
+techniques, the RL environment and the fast graphs all sample through it.
 """
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -31,7 +32,7 @@ from tqdm.auto import tqdm
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
 from minimdm.checkpoint import Checkpoint, check_same_model, load_checkpoint, model_spec
-from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, clip_bounds, ddim_sample, ddpm_sample
+from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, StepSettings, clip_bounds, run_chain
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
 from minimdm.utils import num_threads
@@ -51,10 +52,8 @@ __all__ = [
     "FrameStep",
     "check_finite",
     "autoregress",
-    "SamplerSettings",
-    "sampler_settings",
+    "Sampler",
     "rollout",
-    "next_frame",
 ]
 
 
@@ -89,84 +88,6 @@ class Rollout:
 
 SMALL_BATCH = 256
 """On the CPU, batches below this size roll out on one thread (see :func:`rollout`)."""
-
-
-def _resolve(model_or_checkpoint: Any, device) -> tuple[nn.Module, Checkpoint | None]:
-    if isinstance(model_or_checkpoint, (str, os.PathLike)):
-        model_or_checkpoint = load_checkpoint(model_or_checkpoint, device=device or "cpu")
-    if isinstance(model_or_checkpoint, Checkpoint):
-        return model_or_checkpoint.model, model_or_checkpoint
-    if isinstance(model_or_checkpoint, nn.Module):
-        return model_or_checkpoint, None
-    raise InputTypeError(
-        "model_or_checkpoint must be a Checkpoint, a checkpoint path or an nn.Module, "
-        f"got {type(model_or_checkpoint).__name__}"
-    )
-
-
-@torch.no_grad()
-def next_frame(
-    model: nn.Module,
-    cond: Tensor,
-    generator: torch.Generator | None = None,
-    schedule: NoiseSchedule | None = None,
-    steps: int | None = None,
-    eta: float = 1.0,
-    predicts: str = "eps",
-    clip_x0: ClipX0 = None,
-    hook: Hook | None = None,
-    *,
-    t_start: int | None = None,
-    x_start: Tensor | None = None,
-) -> Tensor:
-    """One auto-regressive step in normalized space: :math:`x_f` (B, D) from :math:`x_{f-1}`.
-
-    For an :class:`~minimdm.amdm.models.MLPDenoiser` this runs the reverse chain: DDPM over all T
-    steps when ``steps`` is None or T, else DDIM over ``steps`` of them with ``eta``
-    (1: as stochastic as DDPM, 0: deterministic given the start noise). ``hook`` is passed to
-    the sampler (inpainting, guidance...). ``t_start`` and ``x_start`` start the DDPM chain at
-    that level from that sample (keyframe inbetweening, A-MDM eq. 5), with DDPM or DDIM.
-    """
-    if isinstance(model, MLPDenoiser):
-        if schedule is None:
-            raise ValueError("schedule is required to sample from a denoiser")
-        shape = tuple(cond.shape)
-        if steps is None or steps == schedule.T:
-            return ddpm_sample(
-                model,
-                schedule,
-                shape,
-                cond,
-                generator,
-                hook,
-                predicts,
-                t_start=t_start,
-                x_start=x_start,
-                clip_x0=clip_x0,
-            )
-        return ddim_sample(
-            model,
-            schedule,
-            shape,
-            cond,
-            steps,
-            eta,
-            generator,
-            hook,
-            predicts,
-            x_start=x_start,
-            clip_x0=clip_x0,
-            t_start=t_start,
-        )
-    if hook is not None or t_start is not None or x_start is not None:
-        raise ValueError(
-            f"hook, t_start and x_start need a diffusion model, got {type(model).__name__}"
-        )
-    if isinstance(model, MVAE):
-        return model.sample(cond, generator)
-    if isinstance(model, MLPRegressor):
-        return model(cond)
-    raise ValueError(f"cannot sample from a {type(model).__name__}")
 
 
 FrameStep = Callable[[int, Tensor], Tensor]
@@ -209,7 +130,7 @@ def autoregress(
     Starting from ``x0`` (B, ...), it calls ``step`` for the frames ``f = first, ...,
     first + n_frames - 1`` and feeds each result back as the next condition, so that
     :math:`x_f \\sim p_\\theta(x_f | x_{f-1})` when ``step`` samples the model (one reverse
-    diffusion chain per frame, :func:`next_frame`). Every technique is a step: random sampling,
+    diffusion chain per frame, :meth:`Sampler.frame`). Every technique is a step: random sampling,
     inpainting (a hook), inbetweening (a chain started from a noised keyframe), beam search (a
     search, then the best plan's frames), AAMDM (GAN draft + polishing + decoding). The loop
     owns what they share: the tqdm bar, the output buffer and the non-finite check
@@ -252,54 +173,205 @@ def autoregress(
 
 
 @dataclass
-class SamplerSettings:
-    """What sampling from a checkpoint needs besides the network, as its metadata says."""
+class Sampler:
+    """A trained next-frame model and everything sampling a frame from it needs (A-MDM §3.1).
 
-    normalizer: Normalizer | None
-    """Feature standardisation (None if the checkpoint stores none)."""
-    schedule: NoiseSchedule | None
-    """The denoiser's noise schedule (None for the baselines)."""
-    predicts: str
-    """What the denoiser outputs: 'eps' or 'x0'."""
-    clip_x0: Any
-    """The training-time clamp of the clean estimate, exactly as stored (None, a number or a
-    per-feature range); the samplers of :mod:`minimdm.diffusion` interpret it."""
-    layout: FeatureLayout | None
-    """The feature layout (joint names, fps)."""
-    skeleton: Skeleton | None
-    """The skeleton."""
-
-
-def sampler_settings(ckpt: Checkpoint, device: torch.device | str = "cpu") -> SamplerSettings:
-    """Read a checkpoint's sampler settings (the one place that reads them).
-
-    ``predicts`` falls back to the network's own (a denoiser) or ``"eps"``; the schedule is
-    built on ``device``; ``clip_x0`` is passed through unchanged.
+    :meth:`load` reads it from a checkpoint: the normalizer, the noise schedule, what the
+    denoiser predicts, the clamp it was trained with, the feature layout and the skeleton.
+    :meth:`frame` draws :math:`x_f \\sim p_\\theta(x_f | x_{f-1})` in normalized space: one
+    reverse diffusion chain for A-MDM, the prior for the MVAE-style baseline, the regressor's
+    output (plus ``noise``) for MSE. :func:`rollout` and every control technique
+    (:mod:`minimdm.control`, :mod:`minimdm.rl`, :mod:`minimdm.fast`) sample through it.
     """
-    meta = ckpt.metadata
-    diff = meta.get("diffusion") or {}
-    norm = Normalizer.from_dict(ckpt.normalizer) if ckpt.normalizer is not None else None
-    layout = ckpt.feature_layout
-    skeleton = ckpt.skeleton
-    return SamplerSettings(
-        normalizer=norm,
-        schedule=ckpt.schedule(device) if diff else None,
-        predicts=diff.get("predicts") or getattr(ckpt.model, "predicts", None) or "eps",
-        clip_x0=diff.get("clip_x0"),
-        layout=FeatureLayout.from_dict(layout) if layout is not None else None,
-        skeleton=Skeleton.from_dict(skeleton) if skeleton is not None else None,
+
+    net: nn.Module
+    """The network: an MLPDenoiser (A-MDM), an MVAE or an MLPRegressor."""
+    normalizer: Normalizer | None = None
+    """Feature standardisation; None if the network works in feature units."""
+    schedule: NoiseSchedule | None = None
+    """The denoiser's noise schedule (None for the baselines)."""
+    settings: StepSettings = field(default_factory=StepSettings)
+    """How a frame's chain runs: steps (None: all T, DDPM), eta, predicts, clip_x0."""
+    noise: float | Tensor = 0.0
+    """Std (normalized units, scalar or (D,)) of Gaussian noise added to a regressor's output."""
+    layout: FeatureLayout | None = None
+    """The feature layout (joint names, fps), from the checkpoint."""
+    skeleton: Skeleton | None = None
+    """The skeleton, from the checkpoint."""
+    checkpoint: Checkpoint | None = None
+    """The checkpoint it was read from (None for a bare network)."""
+
+    @classmethod
+    def load(
+        cls,
+        model: Checkpoint | Sampler | nn.Module | str | os.PathLike,
+        *,
+        normalizer: Normalizer | None = None,
+        schedule: NoiseSchedule | None = None,
+        predicts: str | None = None,
+        clip_x0: ClipX0 | str = "checkpoint",
+        steps: int | None = None,
+        eta: float = 1.0,
+        noise: float | Tensor = 0.0,
+        device: torch.device | str | None = None,
+        name: str = "model",
+    ) -> Sampler:
+        """A sampler from a Checkpoint, a checkpoint path or a bare network (a Sampler is
+        returned as it is).
+
+        From a checkpoint, the normalizer, schedule, ``predicts``, ``clip_x0``, layout and
+        skeleton come from its metadata; explicit arguments win. ``clip_x0="checkpoint"`` is
+        the clamp the model was trained with (none for a bare network). A bare denoiser needs
+        ``schedule``. ``noise`` (regressors only) turns the deterministic MSE baseline into a
+        Gaussian :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`, the likelihood MSE training fits,
+        so that its samples can differ. ``name`` names ``model`` in error messages.
+        """
+        if isinstance(model, Sampler):
+            return model
+        device = check_device("device", device)
+        if steps is not None:
+            steps = check_int("steps", steps, low=1)
+        eta = check_number("eta", eta, low=0.0)
+        ckpt = _checkpoint(model, device, name)
+        net = ckpt.model if ckpt is not None else model
+        _check_kind(net, ckpt, name)
+        layout = skeleton = None
+        if ckpt is not None:
+            meta = ckpt.metadata.get("diffusion") or {}
+            if normalizer is None and ckpt.normalizer is not None:
+                normalizer = Normalizer.from_dict(ckpt.normalizer)
+            if schedule is None and meta:
+                schedule = ckpt.schedule(device or "cpu")
+            predicts = predicts or meta.get("predicts") or getattr(net, "predicts", None)
+            clip_x0 = meta.get("clip_x0") if _from_checkpoint(clip_x0) else clip_x0
+            layout = FeatureLayout.from_dict(ckpt.feature_layout) if ckpt.feature_layout else None
+            skeleton = Skeleton.from_dict(ckpt.skeleton) if ckpt.skeleton else None
+        clip_x0 = None if _from_checkpoint(clip_x0) else clip_x0
+        if clip_x0 is not None:
+            clip_bounds(clip_x0, _x_dim(net))  # checked before any frame is sampled
+        if isinstance(net, MLPDenoiser):
+            predicts = predicts or net.predicts
+            if schedule is None:
+                raise InputError("schedule is required to sample from a bare denoiser, got None")
+        net = (net.to(device) if device is not None else net).eval()
+        dev = next(net.parameters()).device
+        if schedule is not None:
+            schedule = schedule.to(dev)
+            if steps is not None and not 1 <= steps <= schedule.T:
+                raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
+        if isinstance(noise, Tensor) and noise.numel() > 1:
+            noise = noise.to(dev)
+        settings = StepSettings(steps, eta, predicts or "eps", clip_x0)
+        return cls(net, normalizer, schedule, settings, noise, layout, skeleton, ckpt)
+
+    @property
+    def is_diffusion(self) -> bool:
+        return isinstance(self.net, MLPDenoiser)
+
+    @property
+    def dim(self) -> int:
+        """D, the frame dimension."""
+        return _x_dim(self.net)
+
+    @property
+    def fps(self) -> float:
+        return self.layout.fps if self.layout is not None else 30.0
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return self.normalizer.normalize(x) if self.normalizer is not None else x
+
+    def denormalize(self, x: Tensor) -> Tensor:
+        return self.normalizer.denormalize(x) if self.normalizer is not None else x
+
+    @torch.no_grad()
+    def frame(
+        self,
+        cond: Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        hook: Hook | None = None,
+        t_start: int | None = None,
+        x_start: Tensor | None = None,
+    ) -> Tensor:
+        """One auto-regressive step in normalized space: :math:`x_f` (B, D) from
+        :math:`x_{f-1}` (B, D).
+
+        For a denoiser this runs one reverse chain (:attr:`settings`: DDPM over all T levels or
+        DDIM over fewer) with ``hook`` on :math:`x_t` (inpainting, RL residuals...); ``t_start``
+        and ``x_start`` start the chain at that level from that sample (keyframe
+        inbetweening, A-MDM eq. 5).
+        """
+        net = self.net
+        if isinstance(net, MLPDenoiser):
+            rule, levels = self.settings.chain(net, self.schedule, t_start)
+            return run_chain(
+                rule,
+                levels,
+                tuple(cond.shape),
+                cond=cond,
+                generator=generator,
+                hook=hook,
+                x_start=x_start,
+                clip_x0=self.settings.clip_x0,
+            )
+        if hook is not None or t_start is not None or x_start is not None:
+            raise ValueError(
+                f"hook, t_start and x_start need a diffusion model, got {type(net).__name__}"
+            )
+        if isinstance(net, MVAE):
+            return net.sample(cond, generator)
+        x = net(cond)
+        if (torch.as_tensor(self.noise) != 0).any():
+            eps = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+            x = x + torch.as_tensor(self.noise, device=x.device, dtype=x.dtype) * eps
+        return x
+
+
+def _from_checkpoint(clip_x0: Any) -> bool:
+    return isinstance(clip_x0, str) and clip_x0 == "checkpoint"
+
+
+def _x_dim(net: nn.Module) -> int:
+    return int(getattr(getattr(net, "config", None), "x_dim", None) or net.x_dim)
+
+
+def _checkpoint(model: Any, device, name: str) -> Checkpoint | None:
+    """The checkpoint ``model`` is or names (loaded on ``device``), or None for a network."""
+    if isinstance(model, (str, os.PathLike)):
+        return load_checkpoint(model, device=device or "cpu")
+    if isinstance(model, Checkpoint):
+        return model
+    if isinstance(model, nn.Module):
+        return None
+    raise InputTypeError(
+        f"{name} must be a Checkpoint, a checkpoint path, an nn.Module or a Sampler, "
+        f"got {type(model).__name__}"
     )
+
+
+def _check_kind(net: nn.Module, ckpt: Checkpoint | None, name: str) -> None:
+    if not isinstance(net, (MLPDenoiser, MVAE, MLPRegressor)):
+        where = f"checkpoint {ckpt.paths.weights} holds" if ckpt is not None else "got"
+        raise InputError(
+            f"{name} must be an A-MDM denoiser, an MVAE or an MSE regressor "
+            f"(kinds amdm, mvae, mse); {where} a {type(net).__name__}"
+            + (f" (kind {ckpt.kind!r})" if ckpt is not None else "")
+        )
 
 
 @torch.no_grad()
 def rollout(
-    model_or_checkpoint: Checkpoint | str | os.PathLike | nn.Module,
+    model: Sampler | Checkpoint | str | os.PathLike | nn.Module,
     init_states: Tensor,
     n_frames: int,
     n_samples: int = 1,
+    *,
     steps: int | None = None,
     generator: torch.Generator | None = None,
-    *,
     start_pose: StartPose | dict | None = None,
     eta: float = 1.0,
     clip_x0: ClipX0 | str = "checkpoint",
@@ -308,14 +380,14 @@ def rollout(
     decode_positions: bool = True,
     device: torch.device | str | None = None,
     progress: bool = False,
-    sampler: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
+    fast: Callable[[Tensor, torch.Generator | None], Tensor] | None = None,
 ) -> Rollout:
     """Sample ``n_samples`` futures of ``n_frames`` frames from each initial state.
 
     Args:
-        model_or_checkpoint: a loaded :class:`~minimdm.checkpoint.Checkpoint`, a checkpoint
-            path, or a bare network (then pass ``schedule`` for a denoiser and ``normalizer``
-            unless ``init_states`` are already normalized).
+        model: a :class:`Sampler`, a loaded :class:`~minimdm.checkpoint.Checkpoint`, a
+            checkpoint path, or a bare network (then pass ``schedule`` for a denoiser and
+            ``normalizer`` unless ``init_states`` are already normalized).
         init_states: (C, D) or (D,) initial frames x_0, in feature units (``features.encode``).
         n_frames: frames to generate after each initial state, >= 1.
         n_samples: futures per character; the batch is C * n_samples.
@@ -331,8 +403,8 @@ def rollout(
             :math:`\\sqrt{\\bar\\alpha_T}` (tiny), so an unclamped estimate can blow up.
         decode_positions: also decode global joint positions.
         progress: show a tqdm bar over frames.
-        sampler: ``sampler(x_prev, generator) -> x_f`` (normalized, (B, D)) replaces the eager
-            per-frame step :func:`next_frame`, e.g. a :class:`minimdm.fast.FastFrame` of the same
+        fast: ``fast(x_prev, generator) -> x_f`` (normalized, (B, D)) replaces
+            :meth:`Sampler.frame`, e.g. a :class:`minimdm.fast.FastFrame` of the same
             checkpoint: the same chain as one graph, with its own steps, eta and clamp.
 
     On the CPU, batches smaller than ``SMALL_BATCH`` run on one thread: they are bound by
@@ -345,52 +417,63 @@ def rollout(
         ValueError: bad ``init_states`` (shape, non-finite), ``n_frames`` or ``n_samples``.
         NonFiniteFrameError: a generated frame holds NaN/Inf; names the frame.
     """
-    device = check_device("device", device)
     n_frames = check_int("n_frames", n_frames, low=1)
     n_samples = check_int("n_samples", n_samples, low=1)
-    if steps is not None:
-        steps = check_int("steps", steps, low=1)
-    eta = check_number("eta", eta, low=0.0)
-    if sampler is not None and steps is not None:
-        raise InputError("steps belong to the sampler when one is given: pass steps=None")
-    model, ckpt = _resolve(model_or_checkpoint, device)
-    if not isinstance(model, (MLPDenoiser, MVAE, MLPRegressor)):
-        where = f"checkpoint {ckpt.paths.weights} holds" if ckpt is not None else "got"
-        raise InputError(
-            f"model_or_checkpoint must be an A-MDM denoiser, an MVAE or an MSE regressor "
-            f"(kinds amdm, mvae, mse); {where} a {type(model).__name__}"
-            + (f" (kind {ckpt.kind!r})" if ckpt is not None else "")
-        )
-    dev = device if device is not None else next(model.parameters()).device
-    check_generator("generator", generator, dev)
-    if sampler is not None:  # a graph exported from another checkpoint is refused
-        where = str(ckpt.paths.weights) if ckpt is not None else f"a {type(model).__name__}"
-        kind = ckpt.kind if ckpt is not None else model_spec(model)["kind"]
-        check_same_model("sampler", sampler, model, kind, where)
-    model = model.to(dev).eval()
-    predicts = model.predicts if isinstance(model, MLPDenoiser) else "eps"
-    layout = skeleton = None
-    if ckpt is not None:
-        settings = sampler_settings(ckpt, dev)
-        normalizer = normalizer if normalizer is not None else settings.normalizer
-        schedule = schedule if schedule is not None else settings.schedule
-        predicts = settings.predicts
-        layout, skeleton = settings.layout, settings.skeleton
-        if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
-            clip_x0 = settings.clip_x0
-    if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
-        clip_x0 = None
-    if isinstance(model, MLPDenoiser) and schedule is None:
-        raise InputError("schedule is required to sample from a bare denoiser, got None")
-    if schedule is not None:
-        schedule = schedule.to(dev)
-    D = getattr(getattr(model, "config", None), "x_dim", None) or getattr(model, "x_dim", None)
-    if clip_x0 is not None and D is not None:
-        clip_bounds(clip_x0, D)  # checked here, before any frame is sampled
-
-    init_states, start_pose = start_state(
-        init_states, start_pose, skeleton=skeleton, layout=layout, name="init_states"
+    if fast is not None and steps is not None:
+        raise InputError("steps belong to the fast graph when one is given: pass steps=None")
+    sampler = Sampler.load(
+        model,
+        normalizer=normalizer,
+        schedule=schedule,
+        clip_x0=clip_x0,
+        steps=steps,
+        eta=eta,
+        device=device,
+        name="model",
     )
+    check_generator("generator", generator, sampler.device)
+    if fast is not None:  # a graph exported from another checkpoint is refused
+        _check_fast(fast, sampler)
+    x0, start_pose = _start_states(sampler, init_states, start_pose)
+    C, K = x0.shape[0], n_samples
+    # Small batches are launch-bound: extra threads only add synchronisation, and on a shared
+    # 2-core machine they made batch-1 sampling 10x slower.
+    n_threads = 1 if sampler.device.type == "cpu" and C * K < SMALL_BATCH else None
+    cond = sampler.normalize(x0.to(sampler.device)).repeat_interleave(K, dim=0)  # (C K, D)
+
+    def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
+        return fast(x_prev, generator) if fast is not None else sampler.frame(x_prev, generator)
+
+    def who(b: int) -> str:
+        return f"character {b // K}, sample {b % K}"
+
+    with num_threads(n_threads):
+        normalized = autoregress(step, cond, n_frames, who=who, progress=progress)
+    normalized = normalized.reshape(C, K, n_frames, -1)  # (C, K, F, D)
+    feats = sampler.denormalize(normalized)
+    feats = feats.clone() if feats is normalized else feats
+    positions = None
+    if decode_positions:
+        sp = StartPose.broadcast(start_pose, C)
+        sp = StartPose(sp.xy[:, None].expand(C, K, 2), sp.heading[:, None].expand(C, K))
+        positions = decode(feats.double(), sp).float()  # (C, K, F, J, 3)
+    return Rollout(features=feats, positions=positions, normalized=normalized)
+
+
+def _check_fast(fast: Any, sampler: Sampler) -> None:
+    ckpt, net = sampler.checkpoint, sampler.net
+    where = str(ckpt.paths.weights) if ckpt is not None else f"a {type(net).__name__}"
+    kind = ckpt.kind if ckpt is not None else model_spec(net)["kind"]
+    check_same_model("fast", fast, net, kind, where)
+
+
+def _start_states(sampler: Sampler, init_states: Any, start_pose: Any) -> tuple[Tensor, Any]:
+    """The initial frames (C, D), checked against the model, and their start pose."""
+    layout = sampler.layout
+    init_states, start_pose = start_state(
+        init_states, start_pose, skeleton=sampler.skeleton, layout=layout, name="init_states"
+    )
+    D = sampler.dim
     x0 = check_frames(
         "init_states",
         init_states,
@@ -398,33 +481,4 @@ def rollout(
         joints=layout.joint_names if layout is not None else None,
         shape_words=f"(C, {D}) or ({D},)",
     )
-    if x0.dim() == 1:
-        x0 = x0[None]
-    if steps is not None and schedule is not None and not 1 <= steps <= schedule.T:
-        raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
-    C, K = x0.shape[0], n_samples
-    # Small batches are launch-bound: extra threads only add synchronisation, and on a shared
-    # 2-core machine they made batch-1 sampling 10x slower.
-    n_threads = 1 if dev.type == "cpu" and C * K < SMALL_BATCH else None
-    cond = x0.to(dev)
-    cond = normalizer.normalize(cond) if normalizer is not None else cond
-    cond = cond.repeat_interleave(K, dim=0)  # (C K, D), character-major
-
-    def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
-        if sampler is not None:
-            return sampler(x_prev, generator)
-        return next_frame(model, x_prev, generator, schedule, steps, eta, predicts, clip_x0)
-
-    with num_threads(n_threads):
-        normalized = autoregress(
-            step, cond, n_frames, who=lambda b: f"character {b // K}, sample {b % K}",
-            progress=progress,
-        )  # fmt: skip
-    normalized = normalized.reshape(C, K, n_frames, -1)  # (C, K, F, D)
-    feats = normalizer.denormalize(normalized) if normalizer is not None else normalized.clone()
-    positions = None
-    if decode_positions:
-        sp = StartPose.broadcast(start_pose, C)
-        sp = StartPose(sp.xy[:, None].expand(C, K, 2), sp.heading[:, None].expand(C, K))
-        positions = decode(feats.double(), sp).float()  # (C, K, F, J, 3)
-    return Rollout(features=feats, positions=positions, normalized=normalized)
+    return (x0[None] if x0.dim() == 1 else x0), start_pose

@@ -1,8 +1,7 @@
 """Control without retraining (A-MDM §4.2-4.3): task-oriented sampling, inpainting, inbetweening.
 
-Each technique drives the one sampler of :mod:`minimdm.diffusion` (through
-:func:`minimdm.amdm.sampling.next_frame`) frame after frame on the one rollout loop,
-:func:`minimdm.amdm.sampling.autoregress`; none copies either loop:
+Each technique drives the one reverse chain of :mod:`minimdm.diffusion` frame after frame,
+through :meth:`minimdm.amdm.sampling.Sampler.frame`; none copies it:
 
 * :func:`beam_search` samples a pool of candidate futures per frame and keeps the first frame of
   the best under a score function (:mod:`~minimdm.control.scores`);
@@ -12,13 +11,15 @@ Each technique drives the one sampler of :mod:`minimdm.diffusion` (through
 * :func:`inbetween` starts each frame's chain from the noised keyframe at
   :math:`t_0 = (1 - f/N)\\,t_{max}` (eq. 5); :func:`lerp_inbetween` is the linear baseline.
 
-All three take a loaded :class:`~minimdm.checkpoint.Checkpoint` (or a :class:`ControlModel`)
-and return a :class:`Motion`, whose ``positions`` are the global joints, (F, J, 3) for one
-character.
+All three take a loaded :class:`~minimdm.checkpoint.Checkpoint` (or a
+:class:`~minimdm.amdm.sampling.Sampler`) and return a :class:`Motion`, whose ``positions`` are
+the global joints, (F, J, 3) for one character.
 """
 
+from minimdm.amdm.sampling import Sampler
+
 from .beam import Future, beam_search
-from .core import ControlModel, Motion, as_control_model, regressor_noise, sample_frame
+from .core import Motion, regressor_noise
 from .hooks import inbetween_t_start, inpaint_hook
 from .inpaint import inbetween, inpaint, lerp_inbetween
 from .scores import combine, heading_score, reached, speed_score, target_score
@@ -34,11 +35,9 @@ from .targets import (
 )
 
 __all__ = [
-    "ControlModel",
+    "Sampler",
     "Motion",
-    "as_control_model",
     "regressor_noise",
-    "sample_frame",
     "Future",
     "beam_search",
     "target_score",

@@ -27,19 +27,12 @@ from functools import cached_property
 import torch
 from torch import Tensor, nn
 
-from minimdm.amdm.sampling import autoregress
+from minimdm.amdm.sampling import Sampler, autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion.features import StartPose, decode, decode_root
 from minimdm.validate import InputTypeError, describe
 
-from .core import (
-    ControlModel,
-    Motion,
-    as_control_model,
-    as_start,
-    check_count,
-    sample_frame,
-)
+from .core import Motion, as_start, check_count
 
 __all__ = ["Future", "beam_search"]
 
@@ -110,7 +103,7 @@ StopFn = Callable[[Future], Tensor]
 
 @torch.no_grad()
 def beam_search(
-    model: Checkpoint | ControlModel | nn.Module | str | os.PathLike,
+    model: Checkpoint | Sampler | nn.Module | str | os.PathLike,
     start: Tensor,
     score_fn: ScoreFn,
     n_frames: int,
@@ -127,7 +120,7 @@ def beam_search(
 
     Args:
         model: a loaded Checkpoint (normalizer, schedule, predicts, clip_x0 come from it), a
-            path, a :class:`ControlModel` (e.g. with fewer ``steps`` or a regressor ``noise``),
+            path, a :class:`Sampler` (e.g. with fewer ``steps`` or a regressor ``noise``),
             or a bare network.
         start: (D,) or (B, D) start state x_0 in feature units; B characters search at once.
         score_fn: ``score_fn(future) -> (b, P)``, higher is better (module docstring).
@@ -150,7 +143,7 @@ def beam_search(
         A :class:`Motion`; ``info["score"]`` is the best score of the search that chose each
         frame (B, F), NaN after completion.
     """
-    cm = as_control_model(model)
+    cm = Sampler.load(model)
     n_frames = check_count("n_frames", n_frames)
     P = check_count("pool", pool)
     H = check_count("horizon", horizon)
@@ -182,7 +175,7 @@ def beam_search(
             return f"character {int(active[r // P])}, candidate {r % P}"
 
         def propose(h: int, x: Tensor) -> Tensor:
-            return sample_frame(cm, x, generator)
+            return cm.frame(x, generator)
 
         cand = autoregress(propose, c, H, first=f, who=candidate, desc="beam search")
         cand = cand.to(c.device, c.dtype).reshape(b, P, H, D)  # normalized

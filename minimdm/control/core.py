@@ -1,171 +1,39 @@
-"""What every control technique shares: the model it steers, one sampled frame, the result.
+"""What every control technique shares: its start, the model's noise, the result.
 
-:class:`ControlModel` gathers what sampling a frame needs (network, normalizer, noise schedule,
-``predicts``, ``clip_x0``), read from a loaded :class:`~minimdm.checkpoint.Checkpoint` by
-:func:`minimdm.amdm.sampling.sampler_settings`, as :func:`~minimdm.amdm.sampling.rollout` reads
-it. :func:`sample_frame` draws one frame through :func:`minimdm.amdm.sampling.next_frame`, i.e.
-through the one sampler loop of :mod:`minimdm.diffusion`; the techniques run it frame after
-frame on the one rollout loop, :func:`minimdm.amdm.sampling.autoregress`, and differ only in the
-hook and the start of the chain they hand it. :class:`Motion` is what they return.
+The techniques steer a :class:`~minimdm.amdm.sampling.Sampler` (the model and everything
+sampling a frame needs, read from a checkpoint as :func:`~minimdm.amdm.sampling.rollout` reads
+it). Its :meth:`~minimdm.amdm.sampling.Sampler.frame` draws one frame through the one reverse
+chain of :mod:`minimdm.diffusion`; the techniques differ only in the hook and the start of the
+chain they hand it. :func:`as_start` checks what they start from, :func:`regressor_noise` gives
+the MSE baseline a likelihood to sample, and :class:`Motion` is what they return.
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
-from minimdm.amdm.sampling import check_finite, next_frame, sampler_settings
-from minimdm.checkpoint import Checkpoint, load_checkpoint
-from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, clip_bounds
+from minimdm.amdm.models import MLPRegressor
+from minimdm.amdm.sampling import Sampler
+from minimdm.checkpoint import Checkpoint
 from minimdm.motion.features import (
-    FeatureLayout,
     Normalizer,
     StartPose,
     decode,
     decode_root,
     start_state,
 )
-from minimdm.motion.skeleton import Skeleton
 from minimdm.validate import (
-    InputError,
-    InputTypeError,
-    check_device,
     check_frames,
     check_generator,
     check_int,
-    check_number,
 )
 
-__all__ = ["ControlModel", "as_control_model", "regressor_noise", "sample_frame", "Motion"]
-
-
-@dataclass
-class ControlModel:
-    """A trained next-frame model and everything needed to sample from it."""
-
-    net: nn.Module
-    """The network: an MLPDenoiser (A-MDM), an MVAE or an MLPRegressor."""
-    normalizer: Normalizer | None = None
-    """Feature standardisation; None if the network works in feature units."""
-    schedule: NoiseSchedule | None = None
-    """The denoiser's noise schedule (None for the baselines)."""
-    predicts: str = "eps"
-    """What the denoiser outputs: 'eps' or 'x0'."""
-    clip_x0: ClipX0 = None
-    """Clamp of the clean estimate at every step (normalized units)."""
-    steps: int | None = None
-    """Denoising steps per frame (None: all T, DDPM; fewer: DDIM)."""
-    eta: float = 1.0
-    """DDIM stochasticity when ``steps`` < T."""
-    noise: float | Tensor = 0.0
-    """Std (normalized units, scalar or (D,)) of Gaussian noise added to a regressor's output."""
-    layout: FeatureLayout | None = None
-    """The feature layout (joint names, fps), from the checkpoint."""
-    skeleton: Skeleton | None = None
-    """The skeleton, from the checkpoint."""
-
-    @property
-    def is_diffusion(self) -> bool:
-        return isinstance(self.net, MLPDenoiser)
-
-    @property
-    def dim(self) -> int:
-        """D, the frame dimension."""
-        cfg = getattr(self.net, "config", None)
-        return int(getattr(cfg, "x_dim", None) or self.net.x_dim)
-
-    @property
-    def fps(self) -> float:
-        return self.layout.fps if self.layout is not None else 30.0
-
-    @property
-    def device(self) -> torch.device:
-        return next(self.net.parameters()).device
-
-    def normalize(self, x: Tensor) -> Tensor:
-        return self.normalizer.normalize(x) if self.normalizer is not None else x
-
-    def denormalize(self, x: Tensor) -> Tensor:
-        return self.normalizer.denormalize(x) if self.normalizer is not None else x
-
-
-def as_control_model(
-    model: Checkpoint | ControlModel | nn.Module | str | os.PathLike,
-    *,
-    normalizer: Normalizer | None = None,
-    schedule: NoiseSchedule | None = None,
-    predicts: str | None = None,
-    clip_x0: ClipX0 | str = "checkpoint",
-    steps: int | None = None,
-    eta: float = 1.0,
-    noise: float | Tensor = 0.0,
-    device: torch.device | str | None = None,
-) -> ControlModel:
-    """Resolve a Checkpoint, a checkpoint path, a bare network or a ControlModel.
-
-    From a checkpoint the normalizer, schedule, ``predicts``, ``clip_x0``, layout and skeleton
-    come from its metadata (explicit arguments win). A bare denoiser needs ``schedule``.
-    ``noise`` (regressors only) turns the deterministic MSE baseline into a Gaussian
-    :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`, the likelihood that MSE training fits, so that
-    a pool of its candidates can differ.
-    """
-    if isinstance(model, ControlModel):
-        return model
-    device = check_device("device", device)
-    if steps is not None:
-        steps = check_int("steps", steps, low=1)
-    eta = check_number("eta", eta, low=0.0)
-    if isinstance(model, (str, os.PathLike)):
-        model = load_checkpoint(model, device=device or "cpu")
-    layout = skeleton = None
-    if isinstance(model, Checkpoint):
-        settings = sampler_settings(model, device or "cpu")
-        normalizer = normalizer if normalizer is not None else settings.normalizer
-        schedule = schedule if schedule is not None else settings.schedule
-        predicts = predicts or settings.predicts
-        if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
-            clip_x0 = settings.clip_x0
-        layout, skeleton = settings.layout, settings.skeleton
-        net = model.model
-    elif isinstance(model, nn.Module):
-        net = model
-    else:
-        raise InputTypeError(
-            "model must be a Checkpoint, a checkpoint path, an nn.Module or a ControlModel, "
-            f"got {type(model).__name__}"
-        )
-    if not isinstance(net, (MLPDenoiser, MVAE, MLPRegressor)):
-        held = f" (checkpoint kind {model.kind!r})" if isinstance(model, Checkpoint) else ""
-        raise InputError(
-            f"model must be an MLPDenoiser, MVAE or MLPRegressor, got {type(net).__name__}{held}"
-        )
-    if isinstance(clip_x0, str) and clip_x0 == "checkpoint":
-        clip_x0 = None
-    if clip_x0 is not None:
-        x_dim = getattr(getattr(net, "config", None), "x_dim", None) or net.x_dim
-        clip_bounds(clip_x0, int(x_dim))  # checked before any frame is sampled
-    if isinstance(net, MLPDenoiser):
-        predicts = predicts or net.predicts
-        if schedule is None:
-            raise InputError("schedule is required to sample from a bare denoiser, got None")
-    if device is not None:
-        net = net.to(device)
-    net.eval()
-    if schedule is not None:
-        schedule = schedule.to(next(net.parameters()).device)
-        if steps is not None and not 1 <= steps <= schedule.T:
-            raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
-    if isinstance(noise, Tensor) and noise.numel() > 1:
-        noise = noise.to(next(net.parameters()).device)
-    return ControlModel(
-        net, normalizer, schedule, predicts or "eps", clip_x0, steps, eta, noise, layout, skeleton
-    )
+__all__ = ["regressor_noise", "as_start", "Motion"]
 
 
 @torch.no_grad()
@@ -173,7 +41,7 @@ def regressor_noise(checkpoint: Checkpoint, clips: Any) -> Tensor:
     """Per-dimension residual std (D,) of a regressor on ``clips``, in normalized units.
 
     MSE training fits :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`; this is the maximum
-    likelihood :math:`\\sigma` per dimension, to pass as ``as_control_model(..., noise=...)`` so
+    likelihood :math:`\\sigma` per dimension, to pass as ``Sampler.load(..., noise=...)`` so
     that the deterministic baseline proposes distinct candidates (A-MDM §7.3.3 compares models
     under the same search).
     """
@@ -190,46 +58,8 @@ def regressor_noise(checkpoint: Checkpoint, clips: Any) -> Tensor:
     return torch.cat(res).std(dim=0)
 
 
-def sample_frame(
-    cm: ControlModel,
-    cond: Tensor,
-    generator: torch.Generator | None = None,
-    hook: Hook | None = None,
-    t_start: int | None = None,
-    x_start: Tensor | None = None,
-    frame: int | None = None,
-) -> Tensor:
-    """One frame :math:`x_f` (B, D) from :math:`x_{f-1}` (B, D), in normalized space.
-
-    Calls :func:`minimdm.amdm.sampling.next_frame` (the sampler of :mod:`minimdm.diffusion`) with
-    the technique's ``hook`` and chain start. With ``frame`` (1-based) given, the result is
-    checked by :func:`~minimdm.amdm.sampling.check_finite` (:class:`NonFiniteFrameError` naming
-    the frame); the rollout loop :func:`~minimdm.amdm.sampling.autoregress` checks every frame
-    it makes, so the techniques leave it out.
-    """
-    x = next_frame(
-        cm.net,
-        cond,
-        generator,
-        cm.schedule,
-        cm.steps,
-        cm.eta,
-        cm.predicts,
-        cm.clip_x0,
-        hook,
-        t_start=t_start,
-        x_start=x_start,
-    )
-    if isinstance(cm.net, MLPRegressor) and (torch.as_tensor(cm.noise) != 0).any():
-        eps = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
-        x = x + torch.as_tensor(cm.noise, device=x.device, dtype=x.dtype) * eps
-    if frame is not None:
-        check_finite(x, frame, lambda b: f"character {b}", "sampling")
-    return x
-
-
 def as_start(
-    cm: ControlModel, start: Any, start_pose: Any = None, generator: Any = None
+    cm: Sampler, start: Any, start_pose: Any = None, generator: Any = None
 ) -> tuple[Tensor, bool, StartPose]:
     """Check what a technique starts from: ``start`` (D,) or (B, D) in feature units, or a
     :class:`~minimdm.motion.data.Clip` to continue (:func:`~minimdm.motion.features.start_state`,
@@ -292,7 +122,7 @@ class Motion:
     @classmethod
     def from_normalized(
         cls,
-        cm: ControlModel,
+        cm: Sampler,
         normalized: Tensor,
         start_pose: StartPose,
         batched: bool,

@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from minimdm.amdm.sampling import autoregress
+from minimdm.amdm.sampling import Sampler, autoregress
 from minimdm.checkpoint import Checkpoint
 from minimdm.diffusion import q_sample
 from minimdm.motion.features import StartPose
@@ -32,19 +32,12 @@ from minimdm.validate import (
     describe,
 )
 
-from .core import (
-    ControlModel,
-    Motion,
-    as_control_model,
-    as_start,
-    check_count,
-    sample_frame,
-)
+from .core import Motion, as_start, check_count
 from .hooks import inbetween_t_start, inpaint_hook
 
 __all__ = ["inpaint", "inbetween", "lerp_inbetween", "check_targets"]
 
-ModelLike = Checkpoint | ControlModel | nn.Module | str | os.PathLike
+ModelLike = Checkpoint | Sampler | nn.Module | str | os.PathLike
 
 
 def check_targets(targets: Any, mask: Any, D: int, B: int) -> tuple[Tensor, Tensor]:
@@ -98,7 +91,7 @@ def inpaint(
 
     Args:
         model: a loaded Checkpoint (normalizer, schedule, predicts, clip_x0 come from it), a
-            path, a :class:`ControlModel` or a bare denoiser.
+            path, a :class:`Sampler` or a bare denoiser.
         start: (D,) or (B, D) start state x_0, feature units.
         targets: (F, D) or (B, F, D) desired features :math:`\\tilde x_1..\\tilde x_F` in
             feature units (e.g. from :func:`~minimdm.control.targets.root_path_targets`).
@@ -115,7 +108,7 @@ def inpaint(
         A :class:`Motion` of F frames; its masked features equal the targets when
         ``t_stop = -1``.
     """
-    cm = as_control_model(model)
+    cm = Sampler.load(model)
     if not cm.is_diffusion:
         raise ValueError(f"inpainting needs a diffusion model, got {type(cm.net).__name__}")
     x0, batched, sp = as_start(cm, start, start_pose, generator)
@@ -128,7 +121,7 @@ def inpaint(
 
     def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D) under eq. 4's hook
         hook = inpaint_hook(cm.schedule, tgt_n[:, f - 1], m[:, f - 1], generator, int(stops[f - 1]))
-        return sample_frame(cm, cond, generator, hook=hook)
+        return cm.frame(cond, generator, hook=hook)
 
     out = autoregress(step, cm.normalize(x0), F, who=_character, desc="inpaint", progress=progress)
     feats = cm.denormalize(out)
@@ -228,7 +221,7 @@ def inbetween(
         A :class:`Motion`; ``info["t_start"]`` is each frame's starting level (-1: free),
         ``info["at"]`` the keyframes' frames.
     """
-    cm = as_control_model(model)
+    cm = Sampler.load(model)
     if not cm.is_diffusion:
         raise ValueError(f"inbetweening needs a diffusion model, got {type(cm.net).__name__}")
     n_frames = check_count("n_frames", n_frames)
@@ -245,12 +238,12 @@ def inbetween(
         if k < len(ats):
             t0 = inbetween_t_start(f - prev, ats[k] - prev, T)
             x_start = q_sample(cm.schedule, keys_n[:, k], t0, generator=generator)  # (B, D)
-            x = sample_frame(cm, cond, generator, t_start=t0, x_start=x_start)
+            x = cm.frame(cond, generator, t_start=t0, x_start=x_start)
             if f == ats[k]:
                 key["k"], key["prev"] = k + 1, f
         else:
             t0 = -1
-            x = sample_frame(cm, cond, generator)
+            x = cm.frame(cond, generator)
         t_starts.append(t0)
         return x
 
@@ -271,7 +264,7 @@ def lerp_inbetween(
 ) -> Motion:
     """The baseline: linear interpolation in feature space, :math:`x_f = x_0 + \\frac fN
     (\\tilde x_N - x_0)`, f = 1..N, decoded like a model's frames (no model is run)."""
-    cm = as_control_model(model)
+    cm = Sampler.load(model)
     n_frames = check_count("n_frames", n_frames)
     x0, batched, sp = as_start(cm, start, start_pose)
     B, D = x0.shape

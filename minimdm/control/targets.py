@@ -111,7 +111,7 @@ def root_path_targets(layout: FeatureLayout, path: Any) -> Constraint:
     """Root velocity and yaw rate of a 2D root path :math:`p_0..p_F` (module docstring).
 
     Args:
-        layout: the model's feature layout (``ControlModel.layout``).
+        layout: the model's feature layout (``Sampler.layout``).
         path: (F + 1, 2) root ground positions in metres, one per frame, p_0 the start
             (make one with :func:`circle_path`, :func:`figure_eight_path` or
             :func:`polyline_path`).

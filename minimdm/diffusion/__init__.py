@@ -63,7 +63,15 @@ from .chain import (
     reverse_chain,
 )
 from .clamp import clamp_hook, clamp_share, clamp_x0, clip_bounds, data_range
-from .samplers import ddim_sample, ddim_timesteps, ddpm_sample, p_mean_variance, p_sample
+from .samplers import (
+    StepSettings,
+    ddim_sample,
+    ddim_timesteps,
+    ddpm_sample,
+    p_mean_variance,
+    p_sample,
+    run_chain,
+)
 from .schedule import (
     PREDICTS,
     ClipX0,
@@ -119,6 +127,8 @@ __all__ = [
     "reverse_chain",
     "p_mean_variance",
     "p_sample",
+    "StepSettings",
+    "run_chain",
     "ddpm_sample",
     "ddim_sample",
     "ddim_timesteps",

@@ -1,11 +1,19 @@
-"""DDPM and DDIM sampling as thin calls of the one reverse chain."""
+"""DDPM and DDIM sampling as thin calls of the one reverse chain.
+
+:class:`StepSettings` says which chain a frame runs (DDPM, or DDIM over fewer steps; what the
+denoiser predicts; the clamp) and :func:`run_chain` runs it: the samplers below and
+:meth:`minimdm.amdm.sampling.Sampler.frame` are both calls of these two.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .chain import DDIMStep, DDPMStep, chain_step, predict_x0, reverse_chain
+from .chain import DDIMStep, DDPMStep, StepRule, chain_step, predict_x0, reverse_chain
 from .clamp import clamp_hook
 from .schedule import (
     ClipX0,
@@ -17,10 +25,6 @@ from .schedule import (
     gaussian,
     q_posterior,
 )
-
-
-def _hooks(hook: Hook | None) -> list[Hook]:
-    return [] if hook is None else [hook]
 
 
 def _x0_hooks(clip_x0: ClipX0, dim: int, device, dtype) -> list[X0Hook]:
@@ -67,6 +71,34 @@ def p_sample(
     return chain_step(DDPMStep(model, schedule, predicts), x_t, t, t - 1, cond, generator, clamp)
 
 
+@dataclass(frozen=True)
+class StepSettings:
+    """How a frame's reverse chain runs: the step rule, its levels and the clamp.
+
+    ``steps`` None (or T): ancestral DDPM over all T levels (Ho et al. Algorithm 2); fewer:
+    DDIM (Song et al. 2021, eq. 12) over ``steps`` evenly spaced levels with stochasticity
+    ``eta`` (1: as stochastic as DDPM, 0: deterministic given the start noise). ``predicts``
+    names the denoiser's output (``"eps"``, A-MDM eq. 3; ``"x0"``; ``"v"``) and ``clip_x0`` the
+    clamp of its clean estimate (:func:`clip_bounds`).
+    """
+
+    steps: int | None = None
+    eta: float = 1.0
+    predicts: str = "eps"
+    clip_x0: ClipX0 = None
+
+    def chain(
+        self, model: Denoiser, schedule: NoiseSchedule, t_start: int | None = None
+    ) -> tuple[StepRule, list[int]]:
+        """The step rule and the levels of one chain, started at ``t_start`` (default T - 1)."""
+        T = schedule.T
+        if self.steps is None or self.steps == T:
+            levels = list(range(_check_t_start(t_start, T), -1, -1))
+            return DDPMStep(model, schedule, self.predicts), levels
+        rule = DDIMStep(model, schedule, self.predicts, self.eta)
+        return rule, ddim_timesteps(T, self.steps, t_start)
+
+
 def _check_inputs(
     shape: tuple[int, ...], cond: Tensor | None, cond_dim: int | None, x_start: Tensor | None
 ) -> None:
@@ -84,12 +116,6 @@ def _check_inputs(
             raise ValueError(f"x_start must have shape {tuple(shape)}, got {tuple(x_start.shape)}")
 
 
-def _start(shape, x_start, generator, device, dtype):
-    if x_start is not None:
-        return x_start.to(device=device, dtype=dtype)
-    return gaussian(shape, generator, device, dtype)
-
-
 def _check_t_start(t_start: int | None, T: int) -> int:
     t_start = T - 1 if t_start is None else int(t_start)
     if not 0 <= t_start < T:
@@ -97,10 +123,40 @@ def _check_t_start(t_start: int | None, T: int) -> int:
     return t_start
 
 
+def run_chain(
+    rule: StepRule,
+    levels: Sequence[int],
+    shape: tuple[int, ...],
+    *,
+    cond: Tensor | None = None,
+    generator: torch.Generator | None = None,
+    hook: Hook | None = None,
+    x_start: Tensor | None = None,
+    clip_x0: ClipX0 = None,
+    cond_dim: int | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    r"""Check the inputs, draw the start noise (or take ``x_start``) and run
+    :func:`reverse_chain` with ``hook`` on :math:`x_t` and the clamp ``clip_x0`` on
+    :math:`\hat x_0`: what :func:`ddpm_sample`, :func:`ddim_sample` and
+    :meth:`minimdm.amdm.sampling.Sampler.frame` share."""
+    device = device or (cond.device if cond is not None else rule.schedule.device)
+    _check_inputs(shape, cond, cond_dim, x_start)
+    clamp = clamp_hook(clip_x0, shape[-1], device, dtype)
+    if x_start is not None:
+        x = x_start.to(device=device, dtype=dtype)
+    else:
+        x = gaussian(shape, generator, device, dtype)
+    hooks = [] if hook is None else [hook]
+    return reverse_chain(rule, x, levels, cond, generator, hooks, [] if clamp is None else [clamp])
+
+
 def ddpm_sample(
     model: Denoiser,
     schedule: NoiseSchedule,
     shape: tuple[int, ...],
+    *,
     cond: Tensor | None = None,
     generator: torch.Generator | None = None,
     hook: Hook | None = None,
@@ -112,7 +168,7 @@ def ddpm_sample(
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Tensor:
-    """Ancestral DDPM sampling (Ho et al. Algorithm 2), conditioned on ``cond``.
+    r"""Ancestral DDPM sampling (Ho et al. Algorithm 2), conditioned on ``cond``.
 
     Args:
         shape: ``(B, D)`` of the samples.
@@ -121,20 +177,27 @@ def ddpm_sample(
         t_start: start the chain at level ``t_start`` (default ``T - 1``); with ``x_start`` this
             runs the partial chains of keyframe inbetweening (A-MDM eq. 5).
         x_start: the sample at level ``t_start`` (default: standard normal noise).
-        clip_x0: clamp :math:`\\hat x_0` at every step: None, a float ``c`` (``[-c, c]``) or a
+        clip_x0: clamp :math:`\hat x_0` at every step: None, a float ``c`` (``[-c, c]``) or a
             per-feature pair ``(lo, hi)`` (:func:`clip_bounds`).
         cond_dim: if given, ``cond`` must have this last dimension.
 
     Returns:
         The clean samples, shape ``shape``.
     """
-    device = device or (cond.device if cond is not None else schedule.device)
-    _check_inputs(shape, cond, cond_dim, x_start)
-    t_start = _check_t_start(t_start, schedule.T)
-    rule = DDPMStep(model, schedule, predicts)
-    clamp = _x0_hooks(clip_x0, shape[-1], device, dtype)
-    x = _start(shape, x_start, generator, device, dtype)
-    return reverse_chain(rule, x, range(t_start, -1, -1), cond, generator, _hooks(hook), clamp)
+    rule, levels = StepSettings(None, 1.0, predicts).chain(model, schedule, t_start)
+    return run_chain(
+        rule,
+        levels,
+        shape,
+        cond=cond,
+        generator=generator,
+        hook=hook,
+        x_start=x_start,
+        clip_x0=clip_x0,
+        cond_dim=cond_dim,
+        device=device,
+        dtype=dtype,
+    )
 
 
 def ddim_timesteps(T: int, steps: int, t_start: int | None = None) -> list[int]:
@@ -157,30 +220,40 @@ def ddim_sample(
     model: Denoiser,
     schedule: NoiseSchedule,
     shape: tuple[int, ...],
+    *,
     cond: Tensor | None = None,
     steps: int | None = None,
     eta: float = 0.0,
     generator: torch.Generator | None = None,
     hook: Hook | None = None,
     predicts: str = "eps",
+    t_start: int | None = None,
     x_start: Tensor | None = None,
     clip_x0: ClipX0 = None,
     cond_dim: int | None = None,
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
-    t_start: int | None = None,
 ) -> Tensor:
     """DDIM sampling (Song et al. 2021, eq. 12) over ``steps`` of the schedule's ``T`` levels.
 
     ``eta = 0`` is deterministic given the starting noise; ``eta = 1`` matches DDPM's variance.
     The hook receives the level the chain moves to next (``-1`` after the last step).
     ``t_start`` and ``x_start`` start the chain at that level from that sample, then follow
-    :func:`ddim_timesteps` below it (keyframe inbetweening, A-MDM eq. 5).
+    :func:`ddim_timesteps` below it (keyframe inbetweening, A-MDM eq. 5). Unlike
+    :class:`StepSettings`, ``steps = T`` still takes DDIM steps.
     """
-    device = device or (cond.device if cond is not None else schedule.device)
     rule = DDIMStep(model, schedule, predicts, eta)
-    _check_inputs(shape, cond, cond_dim, x_start)
-    ts = ddim_timesteps(schedule.T, steps or schedule.T, t_start)
-    clamp = _x0_hooks(clip_x0, shape[-1], device, dtype)
-    x = _start(shape, x_start, generator, device, dtype)
-    return reverse_chain(rule, x, ts, cond, generator, _hooks(hook), clamp)
+    levels = ddim_timesteps(schedule.T, steps or schedule.T, t_start)
+    return run_chain(
+        rule,
+        levels,
+        shape,
+        cond=cond,
+        generator=generator,
+        hook=hook,
+        x_start=x_start,
+        clip_x0=clip_x0,
+        cond_dim=cond_dim,
+        device=device,
+        dtype=dtype,
+    )

@@ -6,8 +6,8 @@ function the eager rollout loop calls, and runs it with a
 noise)`` is therefore a pure function of tensors: the whole frame, every denoising step, that
 :mod:`minimdm.fast.onnx` traces into one graph. Nothing here restates a sampler:
 
-* ``amdm``: :func:`minimdm.control.core.sample_frame` (DDPM over all T levels, or DDIM over
-  ``steps`` of them), which calls :func:`minimdm.amdm.sampling.next_frame`;
+* ``amdm``: :meth:`minimdm.amdm.sampling.Sampler.frame` (DDPM over all T levels, or DDIM over
+  ``steps`` of them);
 * ``aamdm_motion``: :func:`minimdm.aamdm.eval.aamdm_frame` (3 DD-GAN steps, 2 polishing steps,
   then the pose decoder);
 * ``policy``: the steering policy's mean action, then its steerer, the residual hook of A-MDM
@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from minimdm.checkpoint import Checkpoint, fingerprint
-from minimdm.diffusion import NoiseTape, ddim_timesteps
+from minimdm.diffusion import NoiseTape
 from minimdm.validate import InputError
 
 __all__ = [
@@ -236,16 +236,16 @@ def _schedule_dict(schedule) -> dict[str, Any]:
 
 
 def _amdm_description(cm) -> dict[str, Any]:
-    """The sampler, schedule and normalizer of an A-MDM :class:`ControlModel`."""
+    """The sampler, schedule and normalizer of an A-MDM :class:`Sampler`."""
     T = cm.schedule.T
-    ddpm = cm.steps in (None, T)
-    clip = cm.clip_x0
+    ddpm = cm.settings.steps in (None, T)
+    clip = cm.settings.clip_x0
     return {
         "sampler": {
             "name": "ddpm" if ddpm else "ddim",
-            "levels": list(range(T - 1, -1, -1)) if ddpm else ddim_timesteps(T, cm.steps),
-            "eta": None if ddpm else cm.eta,
-            "predicts": cm.predicts,
+            "levels": cm.settings.chain(cm.net, cm.schedule)[1],
+            "eta": None if ddpm else cm.settings.eta,
+            "predicts": cm.settings.predicts,
             "clip_x0": clip.tolist() if isinstance(clip, Tensor) else clip,
         },
         "schedule": _schedule_dict(cm.schedule),
@@ -271,14 +271,12 @@ class AMDMFrame(FrameGraph):
 
     @classmethod
     def from_checkpoint(cls, ckpt: Checkpoint, steps: int | None = None, eta: float = 1.0):
-        from minimdm.control.core import as_control_model
+        from minimdm.amdm.sampling import Sampler
 
-        return cls(as_control_model(ckpt, steps=steps, eta=eta))
+        return cls(Sampler.load(ckpt, steps=steps, eta=eta))
 
     def frame(self, state, generator, *extra):
-        from minimdm.control.core import sample_frame
-
-        return sample_frame(self.cm, state, generator)
+        return self.cm.frame(state, generator)
 
     def describe(self):
         return _amdm_description(self.cm)

@@ -30,8 +30,7 @@ from gymnasium.vector.utils import batch_space
 from torch import Tensor
 
 from minimdm.amdm.models import MVAE
-from minimdm.control.core import ControlModel, sample_frame
-from minimdm.diffusion import ddim_timesteps
+from minimdm.amdm.sampling import Sampler
 from minimdm.motion import metrics
 from minimdm.validate import check_frames, check_int, check_number
 
@@ -84,7 +83,7 @@ class ResidualSteerer(Steerer):
 
     kind = "residual"
 
-    def __init__(self, cm: ControlModel, schedule: ResidualSchedule, features: str = "all"):
+    def __init__(self, cm: Sampler, schedule: ResidualSchedule, features: str = "all"):
         if not cm.is_diffusion:
             raise ValueError(
                 f"residual steering needs an A-MDM denoiser, got {type(cm.net).__name__}"
@@ -97,21 +96,18 @@ class ResidualSteerer(Steerer):
         self.idx = feature_indices(cm.layout, features) if features != "all" else None
         self.per_step = len(self.idx) if self.idx is not None else cm.dim
         self.action_dim = schedule.n_residuals * self.per_step
-        T = cm.schedule.T
-        self.chain = (
-            list(range(T - 1, -1, -1)) if cm.steps in (None, T) else ddim_timesteps(T, cm.steps)
-        )
+        self.chain = cm.settings.chain(cm.net, cm.schedule)[1]  # the levels of a frame's chain
 
     def __call__(self, cond, actions, generator):
         hook = residual_hook(self.schedule, actions, self.chain, self.idx)
-        return sample_frame(self.cm, cond, generator, hook)
+        return self.cm.frame(cond, generator, hook=hook)
 
     def to_dict(self):
         return {
             "kind": self.kind,
             "schedule": self.schedule.to_dict(),
             "features": self.features,
-            "steps": self.cm.steps,
+            "steps": self.cm.settings.steps,
         }
 
 
@@ -121,7 +117,7 @@ class LatentSteerer(Steerer):
 
     kind = "latent"
 
-    def __init__(self, cm: ControlModel, scale: float = 2.0):
+    def __init__(self, cm: Sampler, scale: float = 2.0):
         if not isinstance(cm.net, MVAE):
             raise ValueError(f"latent steering needs an MVAE, got {type(cm.net).__name__}")
         self.cm, self.scale = cm, float(scale)
@@ -135,7 +131,7 @@ class LatentSteerer(Steerer):
         return {"kind": self.kind, "scale": self.scale}
 
 
-def make_steerer(cm: ControlModel, spec: dict[str, Any]) -> Steerer:
+def make_steerer(cm: Sampler, spec: dict[str, Any]) -> Steerer:
     """A steerer from :meth:`Steerer.to_dict`'s output (as stored in a policy checkpoint)."""
     kind = spec.get("kind")
     if kind == "residual":
@@ -154,7 +150,7 @@ class _FrameQuality:
     (their 5 % quantile, as :func:`~minimdm.motion.metrics.foot_contact_offsets`).
     """
 
-    def __init__(self, cm: ControlModel, starts: Tensor, n: int) -> None:
+    def __init__(self, cm: Sampler, starts: Tensor, n: int) -> None:
         sk, lay = cm.skeleton, cm.layout
         self.parents = list(sk.parents)
         self.ref = metrics.skeleton_bone_lengths(sk.offsets, sk.parents).float()
@@ -215,7 +211,7 @@ class SteeringVecEnv(VectorEnv):
 
     def __init__(
         self,
-        cm: ControlModel,
+        cm: Sampler,
         steerer: Steerer,
         task: Task,
         starts: Tensor,

@@ -15,13 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from minimdm.amdm.sampling import Sampler
 from minimdm.checkpoint import (
     Checkpoint,
     CheckpointMismatchError,
     fingerprint,
     load_checkpoint,
 )
-from minimdm.control.core import ControlModel, as_control_model
 
 from .env import Steerer, make_steerer
 from .nets import PolicyNet
@@ -58,7 +58,7 @@ class Steering:
     """A trained policy with the base model, steerer and task it was trained with."""
 
     policy: PolicyNet
-    cm: ControlModel
+    cm: Sampler
     steerer: Steerer
     task: Task
     checkpoint: Checkpoint
@@ -102,7 +102,7 @@ def load_steering(
             f"{have['name']!r} ({have['kind']}, weights {have['fingerprint']}, "
             f"{bc.paths.weights})"
         )
-    cm = as_control_model(bc, steps=meta["steering"].get("steps"))
+    cm = Sampler.load(bc, steps=meta["steering"].get("steps"))
     steerer = make_steerer(cm, meta["steering"])
     opts = {k: v for k, v in meta["task"].items() if k != "name"}
     for k, v in list(opts.items()):

@@ -24,9 +24,9 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from minimdm.amdm.sampling import Sampler
 from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
-from minimdm.control.core import ControlModel, as_control_model
 from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import encode
 from minimdm.validate import InputError, check_choice, check_int, check_number, check_output_dir
@@ -170,7 +170,7 @@ def load_base(config: RLConfig, base: Checkpoint | None = None) -> Checkpoint:
     return base
 
 
-def make_config_steerer(cm: ControlModel, config: RLConfig) -> Steerer:
+def make_config_steerer(cm: Sampler, config: RLConfig) -> Steerer:
     if cm.is_diffusion:
         T = cm.schedule.T
         if config.levels is not None:
@@ -193,7 +193,7 @@ def build_env(
 ) -> SteeringVecEnv:
     """The vector environment a config describes (its base model loaded if not given)."""
     base = load_base(config, base)
-    cm = as_control_model(base, steps=config.steps)
+    cm = Sampler.load(base, steps=config.steps)
     opts = {k: tuple(v) if isinstance(v, list) else v for k, v in config.task_options.items()}
     starts = corpus_starts(base, config.start_split)
     if config.task == "joystick" and "corpus_speed" not in opts:

@@ -30,10 +30,9 @@ from minimdm.aamdm.motion import AAMDMMotion
 from minimdm.amdm.sampling import (
     FrameStep,
     Rollout,
+    Sampler,
     autoregress,
-    next_frame,
     rollout,
-    sampler_settings,
 )
 from minimdm.motion import metrics
 from minimdm.motion.features import StartPose
@@ -63,13 +62,12 @@ def frames_per_second(step: FrameStep, x0: Tensor, n_frames: int = 60, warmup: i
 
 def _amdm_stepper(ckpt: Any, steps: int | None, eta: float, device: torch.device):
     """``(step(f, cond) -> frame, normalizer)`` for an A-MDM checkpoint, without randomness."""
-    s = sampler_settings(ckpt, device)
-    model = ckpt.model.to(device).eval()
+    sampler = Sampler.load(ckpt, steps=steps, eta=eta, device=device)
 
     def step(f: int, cond: Tensor) -> Tensor:
-        return next_frame(model, cond, None, s.schedule, steps, eta, s.predicts, s.clip_x0)
+        return sampler.frame(cond, None)
 
-    return step, s.normalizer
+    return step, sampler.normalizer
 
 
 def motion_comparison(
@@ -110,9 +108,16 @@ def motion_comparison(
         t0 = time.perf_counter()
         if name.startswith("amdm"):
             r = rollout(
-                amdm, init["y"], n_frames, n_samples, arg, g, start_pose=init["start"], eta=eta,
+                amdm,
+                init["y"],
+                n_frames,
+                n_samples,
+                steps=arg,
+                generator=g,
+                start_pose=init["start"],
+                eta=eta,
                 device=dev,
-            )  # fmt: skip
+            )
             one, norm = _amdm_stepper(amdm, arg, eta, dev)
             x0 = norm.normalize(init["y"][:1]).to(dev)
             calls = arg or T

@@ -175,7 +175,9 @@ def _generate(ckpt: Checkpoint, takes: MotionDataset, p: LocomotionProtocol, n_f
         from minimdm.amdm.sampling import rollout
 
         init = torch.stack([encode(c)[f0 - 1] for c in takes]).float()  # (C, D)
-        r = rollout(ckpt, init, n_frames, p.n_samples, p.steps, gen, start_pose=start)
+        r = rollout(
+            ckpt, init, n_frames, p.n_samples, steps=p.steps, generator=gen, start_pose=start
+        )
     return r.features.double(), r.positions.double()
 
 

@@ -302,7 +302,9 @@ class Squ9Study:
         if method in ("ddpm5", "ddpm200", "adm5"):
             s = self.schedules[method]
             pred = "x0" if method == "adm5" else "eps"
-            x = ddpm_sample(model, s, tuple(cond.shape), cond, generator, predicts=pred)
+            x = ddpm_sample(
+                model, s, tuple(cond.shape), cond=cond, generator=generator, predicts=pred
+            )
             return x, s.T
         count = StepCount()
         x = model.sample(cond, generator, T_adm=0 if method == "ddgan" else None, count=count)

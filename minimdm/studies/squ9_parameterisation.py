@@ -115,7 +115,9 @@ def run_seed(seed: int, T: int = 20, predicts=PREDICTS, train: dict | None = Non
         losses = train_denoiser(model, schedule, x_prev, x_next, generator=g, **(train or TRAIN))
         with torch.no_grad():
             g_sample = torch.Generator().manual_seed(seed + 2)
-            out = ddpm_sample(model, schedule, x_eval.shape, x_eval, g_sample, predicts=p)
+            out = ddpm_sample(
+                model, schedule, x_eval.shape, cond=x_eval, generator=g_sample, predicts=p
+            )
         m = squ9_metrics(x_eval, out, sq)
         err, ideal = x0_error_by_level(model, schedule, sq)
         gain = input_gain_by_level(model, schedule, sq)
