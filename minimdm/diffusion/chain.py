@@ -266,7 +266,10 @@ def chain_step(
     x0_hooks: Sequence[X0Hook] = (),
     count: StepCount | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """One step of the reverse chain from level ``t`` to ``t_next``: ``(x_{t_next}, x0_hat)``."""
+    """One step of the reverse chain from level ``t`` to ``t_next``: ``(x_{t_next}, x0_hat)``.
+
+    The same step as one pass of :func:`reverse_chain`'s loop, for callers that step by hand.
+    """
     x0_hat, eps = predict_x0(rule, x_t, t, cond, generator, x0_hooks)
     rule = rule.at(t)
     if count is not None:
@@ -308,7 +311,12 @@ def reverse_chain(
         raise ValueError(f"levels must be a non-empty, strictly decreasing list >= 0, got {levels}")
     for i, t in enumerate(levels):
         t_next = levels[i + 1] if i + 1 < len(levels) else -1
-        x, x0_hat = chain_step(rule, x, t, t_next, cond, generator, x0_hooks, count)
+        x0_hat, eps = predict_x0(rule, x, t, cond, generator, x0_hooks)  # the network
+        step = rule.at(t)
+        if count is not None:
+            count.levels.append(t)
+            count.modules.append(step.name)
+        x = step.step(x, t, t_next, x0_hat, eps, generator)  # e.g. DDPM: the posterior
         for hook in hooks:
             x = hook(t_next, x, x0_hat)
     return x
