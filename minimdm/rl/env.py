@@ -33,6 +33,7 @@ from minimdm.amdm.models import MVAE
 from minimdm.control.core import ControlModel, sample_frame
 from minimdm.diffusion import ddim_timesteps
 from minimdm.motion import metrics
+from minimdm.motion.skeleton import rotate_about_z, wrap_angle
 from minimdm.validate import check_frames, check_int, check_number
 
 from .residual import ResidualSchedule, feature_indices, residual_hook
@@ -168,9 +169,7 @@ class _FrameQuality:
         return feats[:, self.pos_sl].unflatten(-1, (self.J, 3))
 
     def _feet_world(self, p: Tensor, xy: Tensor, heading: Tensor) -> Tensor:
-        c, s = torch.cos(heading)[:, None], torch.sin(heading)[:, None]
-        fx, fy = p[:, self.feet, 0], p[:, self.feet, 1]
-        return torch.stack([c * fx - s * fy, s * fx + c * fy], -1) + xy[:, None, :]
+        return rotate_about_z(p[:, self.feet, :2], heading) + xy[:, None, :]
 
     def reset(self, idx: Tensor, feats: Tensor, xy: Tensor, heading: Tensor) -> None:
         self.prev[idx] = self._feet_world(self._local(feats), xy, heading)
@@ -282,9 +281,7 @@ class SteeringVecEnv(VectorEnv):
         ``heading`` + yaw rate (the frame's own heading)."""
         feats = self._feats(x)
         vel, yaw = feats[:, self._rot_sl[0]], feats[:, self._rot_sl[1]][:, 0]
-        h = heading + yaw
-        c, s = torch.cos(h), torch.sin(h)
-        world = torch.stack([c * vel[:, 0] - s * vel[:, 1], s * vel[:, 0] + c * vel[:, 1]], -1)
+        world = rotate_about_z(vel, heading + yaw)  # the step of decode_root, (M, 2)
         return world * self.cm.fps, yaw
 
     def _obs(self) -> np.ndarray:
@@ -310,7 +307,7 @@ class SteeringVecEnv(VectorEnv):
             raise FloatingPointError(f"the model produced a non-finite frame for environment {bad}")
         prev = self.ch.xy.clone()
         vel, yaw = self._root_motion(x, self.ch.heading)
-        self.ch.heading = torch.remainder(self.ch.heading + yaw + torch.pi, 2 * torch.pi) - torch.pi
+        self.ch.heading = wrap_angle(self.ch.heading + yaw, include_pi=False)
         self.ch.velocity = vel
         self.ch.xy = self.ch.xy + vel / self.cm.fps
         self.ch.frame = self.ch.frame + 1
