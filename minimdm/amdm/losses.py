@@ -21,7 +21,7 @@ from minimdm.diffusion import (
     clip_bounds,
     diffusion_loss,
 )
-from minimdm.motion.skeleton import rotate_about_z
+from minimdm.motion.skeleton import bone_pairs, rotate_about_z
 
 __all__ = ["MODEL_KINDS", "FrameGeometry", "frame_loss", "window_loss", "make_windows"]
 
@@ -87,8 +87,7 @@ class FrameGeometry:
         self.bones = float(bones)
         if self.bones > 0 and (parents is None or len(parents) != self.J):
             raise ValueError(f"the bone loss needs the parents of the {self.J} joints")
-        self.child = [j for j, p in enumerate(parents or []) if p >= 0]
-        self.parent = [parents[j] for j in self.child] if parents is not None else []
+        self.child, self.parent = bone_pairs(parents or [])  # the bones, as metrics.bone_lengths
         J = self.J
         self.vel_std = self.std[3 + 3 * J : 3 + 6 * J].reshape(J, 3)  # (J, 3)
 
