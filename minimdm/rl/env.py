@@ -55,13 +55,19 @@ OBSERVATIONS = ("frame", "root")
 choice, D numbers) or only its root velocity and yaw rate (3 numbers)."""
 
 
+def _non_finite_row(x: Tensor) -> int | None:
+    """The first row of ``x`` (N, D) that holds NaN or Inf, or None when every value is finite."""
+    if torch.isfinite(x).all():
+        return None
+    return (~torch.isfinite(x)).any(1).nonzero()[0].item()
+
+
 def check_actions(actions: Any, n: int, dim: int) -> Tensor:
     """``actions`` as a float32 (n, dim) tensor; ``ValueError`` for another shape or NaN/Inf."""
     a = torch.as_tensor(np.asarray(actions), dtype=torch.float32)
     if a.shape != (n, dim):
         raise ValueError(f"actions must have shape ({n}, {dim}), got {tuple(a.shape)}")
-    if not torch.isfinite(a).all():
-        bad = (~torch.isfinite(a)).any(1).nonzero()[0].item()
+    if (bad := _non_finite_row(a)) is not None:
         raise ValueError(f"actions must be finite, but environment {bad} holds NaN/Inf")
     return a
 
@@ -302,8 +308,7 @@ class SteeringVecEnv(VectorEnv):
         """Step every character one frame with ``actions`` (N, A): returns the new frames
         (N, D) normalized and the previous root positions (N, 2). No task, no reset."""
         x = self.steerer(self.x, actions.to(self.cm.device), self.generator)
-        if not torch.isfinite(x).all():
-            bad = (~torch.isfinite(x)).any(1).nonzero()[0].item()
+        if (bad := _non_finite_row(x)) is not None:
             raise FloatingPointError(f"the model produced a non-finite frame for environment {bad}")
         prev = self.ch.xy.clone()
         vel, yaw = self._root_motion(x, self.ch.heading)
