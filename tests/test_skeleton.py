@@ -12,6 +12,7 @@ from minimdm.motion.skeleton import (
     Skeleton,
     axis_angle_to_matrix,
     axis_angle_to_quat,
+    bone_pairs,
     euler_to_matrix,
     forward_kinematics,
     heading_angle,
@@ -25,7 +26,9 @@ from minimdm.motion.skeleton import (
     quat_rotate,
     quat_slerp,
     quat_to_matrix,
+    rotate_about_z,
     sixd_to_matrix,
+    to_heading_frame,
     wrap_angle,
     yaw_matrix,
 )
@@ -141,6 +144,62 @@ def test_heading_is_the_yaw_and_ignores_pitch(yaw, v):
     R = yaw_matrix(torch.tensor(yaw, dtype=F64)) @ pitch
     assert heading_angle(R).item() == pytest.approx(yaw, abs=1e-9)
     assert wrap_angle(torch.tensor(yaw + 4 * math.pi)).item() == pytest.approx(yaw, abs=1e-6)
+
+
+headings = st.lists(st.floats(-50.0, 50.0), min_size=1, max_size=5)
+coords = st.floats(-10.0, 10.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(headings, st.integers(1, 4), st.sampled_from([2, 3]), st.integers(0, 2**31 - 1))
+def test_rotating_about_z_by_h_then_minus_h_is_the_identity(h, n, dim, seed):
+    """Also: the heading frame inverts the rotation, and 3D vectors rotate as ``yaw_matrix``."""
+    h = torch.tensor(h, dtype=F64)  # (N,)
+    v = torch.randn(len(h), n, dim, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    w = rotate_about_z(v, h)  # (N, n, dim): the heading broadcasts over the points
+    assert w.shape == v.shape
+    assert torch.allclose(rotate_about_z(w, -h), v, atol=1e-12)
+    assert torch.allclose(to_heading_frame(w, h), v, atol=1e-12)
+    assert torch.allclose(w.norm(dim=-1), v.norm(dim=-1), atol=1e-12)
+    if dim == 3:
+        R = yaw_matrix(h)[:, None]  # (N, 1, 3, 3)
+        assert torch.allclose(w, (R @ v[..., None])[..., 0], atol=1e-12)
+        assert torch.equal(w[..., 2], v[..., 2])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(-50.0, 50.0), st.floats(0.01, 10.0))
+def test_a_characters_own_forward_is_plus_x_in_its_heading_frame(h, speed):
+    ahead = speed * torch.tensor([math.cos(h), math.sin(h)], dtype=F64)
+    left = speed * torch.tensor([-math.sin(h), math.cos(h)], dtype=F64)
+    heading = torch.tensor(h, dtype=F64)
+    assert torch.allclose(to_heading_frame(ahead, heading), ahead.new_tensor([speed, 0]), atol=1e-9)
+    assert torch.allclose(to_heading_frame(left, heading), ahead.new_tensor([0, speed]), atol=1e-9)
+    # the frame's axes, back in the world, are the heading's
+    assert torch.allclose(rotate_about_z(ahead.new_tensor([speed, 0]), heading), ahead, atol=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-1e3, 1e3), st.booleans())
+def test_wrap_angle_lands_near_zero_and_moves_by_whole_turns(a, include_pi):
+    w = wrap_angle(torch.tensor(a, dtype=F64), include_pi).item()
+    assert -math.pi <= w <= math.pi  # the open end may round onto pi
+    turns = (a - w) / (2 * math.pi)
+    assert turns == pytest.approx(round(turns), abs=1e-9)
+
+
+def test_wrap_angle_keeps_the_end_it_names():
+    ends = torch.tensor([math.pi, -math.pi], dtype=F64)
+    assert wrap_angle(ends).tolist() == [math.pi, math.pi]  # (-pi, pi]
+    assert wrap_angle(ends, include_pi=False).tolist() == [-math.pi, -math.pi]  # [-pi, pi)
+
+
+def test_bone_pairs_are_the_joints_with_a_parent_in_joint_order():
+    assert bone_pairs([-1, 0, 1, 1, 0]) == ([1, 2, 3, 4], [0, 1, 1, 0])
+    sk = humanoid_skeleton()
+    children, parents = bone_pairs(sk.parents)
+    assert len(children) == len(sk.names) - 1
+    assert [sk.parents[c] for c in children] == parents
 
 
 def chain() -> Skeleton:

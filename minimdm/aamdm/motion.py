@@ -34,7 +34,13 @@ from torch import Tensor, nn
 
 from minimdm.aamdm.model import AAMDM, AAMDMConfig
 from minimdm.checkpoint import register_model_kind
-from minimdm.motion.skeleton import Skeleton, heading_angle, sixd_to_matrix, wrap_angle
+from minimdm.motion.skeleton import (
+    Skeleton,
+    heading_angle,
+    sixd_to_matrix,
+    to_heading_frame,
+    wrap_angle,
+)
 from minimdm.nn import MLP
 
 __all__ = [
@@ -70,12 +76,11 @@ def trajectory_features(
     """
     F = root_xy.shape[0]
     idx = torch.arange(F)
-    c, s = torch.cos(heading), torch.sin(heading)
     pos, dirs = [], []
     for h in horizons:
         g = (idx + int(h)).clamp(max=F - 1)
         d = root_xy[g] - root_xy  # (F, 2) world
-        pos.append(torch.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], -1))
+        pos.append(to_heading_frame(d, heading))
         a = wrap_angle(heading[g] - heading)
         dirs.append(torch.stack([torch.cos(a), torch.sin(a)], -1))
     return torch.cat(pos + dirs, dim=-1)

@@ -22,6 +22,7 @@ from minimdm.diffusion import (
     clip_bounds,
     diffusion_loss,
 )
+from minimdm.motion.skeleton import bone_pairs, rotate_about_z
 
 __all__ = ["MODEL_KINDS", "FrameGeometry", "frame_loss", "window_loss", "make_windows"]
 
@@ -87,8 +88,7 @@ class FrameGeometry:
         self.bones = float(bones)
         if self.bones > 0 and (parents is None or len(parents) != self.J):
             raise ValueError(f"the bone loss needs the parents of the {self.J} joints")
-        self.child = [j for j, p in enumerate(parents or []) if p >= 0]
-        self.parent = [parents[j] for j in self.child] if parents is not None else []
+        self.child, self.parent = bone_pairs(parents or [])  # the bones, as metrics.bone_lengths
         J = self.J
         self.vel_std = self.std[3 + 3 * J : 3 + 6 * J].reshape(J, 3)  # (J, 3)
 
@@ -109,15 +109,7 @@ class FrameGeometry:
         """:math:`\\Delta_f` (B, J, 3), metres, of frame ``x`` after ``cond`` (both normalized)."""
         root_vel, yaw, pos, _ = self._parts(x)
         _, _, prev, _ = self._parts(cond)
-        c, s = torch.cos(-yaw)[:, None], torch.sin(-yaw)[:, None]  # R_z(-d_r)
-        prev = torch.stack(
-            [
-                c * prev[..., 0] - s * prev[..., 1],
-                s * prev[..., 0] + c * prev[..., 1],
-                prev[..., 2],
-            ],
-            dim=-1,
-        )  # (B, J, 3) j_{p,f-1} in the heading frame of f
+        prev = rotate_about_z(prev, -yaw)  # (B, J, 3) R_z(-d_r) j_{p,f-1}: heading frame of f
         root = torch.cat([root_vel, torch.zeros_like(root_vel[:, :1])], -1)[:, None]  # (B, 1, 3)
         return root + pos - prev
 

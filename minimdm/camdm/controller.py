@@ -51,7 +51,7 @@ from minimdm.checkpoint import Checkpoint, check_same_model
 from minimdm.diffusion import NoiseTape
 from minimdm.motion.data import Clip
 from minimdm.motion.features import Normalizer
-from minimdm.motion.skeleton import Skeleton, wrap_angle
+from minimdm.motion.skeleton import Skeleton, rotate_about_z, wrap_angle
 from minimdm.utils import num_threads
 from minimdm.validate import (
     MAX_FEATURE,
@@ -461,9 +461,7 @@ class CAMDMController:
             )  # unwrapped, so that blending never turns the long way
             traj_xy, traj_h = blend_trajectories(pred_xy, pred_h, user_xy, user_h, cfg.blend_bias)
         # the controlling trajectory in the current frame
-        c, s = torch.cos(-h)[:, None], torch.sin(-h)[:, None]
-        d = traj_xy - xy[:, None]
-        local = torch.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1]], -1)
+        local = rotate_about_z(traj_xy - xy[:, None], -h)  # (B, F, 2)
         rel = traj_h - h[:, None]
         traj = torch.cat([local, torch.cos(rel)[..., None], torch.sin(rel)[..., None]], -1)
         # CFG-PM at a style change

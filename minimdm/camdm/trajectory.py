@@ -23,7 +23,7 @@ import math
 import torch
 from torch import Tensor
 
-from minimdm.motion.skeleton import wrap_angle
+from minimdm.motion.skeleton import rotate_about_z, to_heading_frame, wrap_angle
 
 __all__ = [
     "halflife_to_damping",
@@ -138,12 +138,10 @@ def extend_trajectory(
         m = min(K, xy.shape[1] - 1, length - xy.shape[1])
         last, h_last = xy[:, -1:], heading[:, -1:]  # (B, 1, 2), (B, 1)
         d = _travel_direction(xy, heading)  # (B,)
-        c, s = torch.cos(d)[:, None], torch.sin(d)[:, None]
         prev = xy[:, -1 - m : -1].flip(1) - last  # (B, m, 2): the points 1..m steps back
-        along = prev[..., 0] * c + prev[..., 1] * s  # their coordinates in the travel frame
-        across = -prev[..., 0] * s + prev[..., 1] * c
+        along, across = to_heading_frame(prev, d).unbind(-1)  # in the travel frame
         along = -along  # the mirror: behind becomes ahead
-        new_xy = last + torch.stack([along * c - across * s, along * s + across * c], -1)
+        new_xy = last + rotate_about_z(torch.stack([along, across], -1), d)
         back = heading[:, -1 - m : -1].flip(1)  # (B, m)
         new_h = h_last + wrap_angle(h_last - back)  # 2 theta_n - theta_{n-j}
         xy, heading = torch.cat([xy, new_xy], 1), torch.cat([heading, new_h], 1)

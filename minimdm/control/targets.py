@@ -28,7 +28,7 @@ from torch import Tensor
 
 from minimdm.motion.data import Clip
 from minimdm.motion.features import FeatureLayout, StartPose, encode
-from minimdm.motion.skeleton import wrap_angle
+from minimdm.motion.skeleton import to_heading_frame, wrap_angle
 
 __all__ = [
     "Constraint",
@@ -122,8 +122,7 @@ def root_path_targets(layout: FeatureLayout, path: Any) -> Constraint:
     p = _as_path("path", path)
     step = p[1:] - p[:-1]  # (F, 2) world displacements
     h = path_headings(p)  # (F,)
-    c, s = torch.cos(h), torch.sin(h)
-    local = torch.stack([c * step[:, 0] + s * step[:, 1], -s * step[:, 0] + c * step[:, 1]], -1)
+    local = to_heading_frame(step, h)  # (F, 2)
     yaw = wrap_angle(torch.diff(h, prepend=h[:1]))
     F, D = len(step), layout.dim
     targets = torch.zeros(F, D, dtype=torch.float64)
@@ -185,10 +184,7 @@ def joint_path_targets(
         raise ValueError(f"positions must be finite with shape ({F}, 3), got {tuple(p.shape)}")
     h = path_headings(root.path.double())  # (F,)
     rel = p[:, :2] - root.path[1:].double()
-    c, s = torch.cos(h), torch.sin(h)
-    local = torch.stack(
-        [c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], p[:, 2]], -1
-    )
+    local = torch.cat([to_heading_frame(rel, h), p[:, 2:]], -1)  # (F, 3)
     targets = torch.zeros(F, layout.dim)
     mask = torch.zeros(F, layout.dim, dtype=torch.bool)
     cols = slice(layout.joint_pos.start + 3 * j, layout.joint_pos.start + 3 * j + 3)

@@ -42,6 +42,7 @@ from .skeleton import (
     heading_angle,
     matrix_to_6d,
     matrix_to_quat,
+    rotate_about_z,
     sixd_to_matrix,
     wrap_angle,
     yaw_matrix,
@@ -327,9 +328,7 @@ def decode_root(features: Tensor, start_pose: StartPose | dict) -> tuple[Tensor,
     """
     xy0, h0 = _as_start(start_pose, features)
     heading = h0[..., None] + torch.cumsum(features[..., 2], dim=-1)  # (..., N)
-    c, s = torch.cos(heading), torch.sin(heading)
-    dx, dy = features[..., 0], features[..., 1]
-    step = torch.stack([c * dx - s * dy, s * dx + c * dy], dim=-1)  # (..., N, 2)
+    step = rotate_about_z(features[..., :2], heading)  # (..., N, 2)
     return xy0[..., None, :] + torch.cumsum(step, dim=-2), heading
 
 

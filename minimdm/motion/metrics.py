@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .skeleton import bone_pairs
+
 __all__ = [
     "CM",
     "apd",
@@ -123,8 +125,7 @@ def bone_lengths(positions: ArrayLike, parents: Sequence[int]) -> Tensor:
         raise ValueError(
             f"parents must have {x.shape[-2]} entries (one per joint), got {len(parents)}"
         )
-    child = [j for j, p in enumerate(parents) if p >= 0]
-    par = [parents[j] for j in child]
+    child, par = bone_pairs(parents)
     return (x[..., child, :] - x[..., par, :]).norm(dim=-1)
 
 
@@ -136,7 +137,7 @@ def skeleton_bone_lengths(offsets: ArrayLike, parents: Sequence[int]) -> Tensor:
     o = torch.as_tensor(np.asarray(offsets), dtype=torch.float64)
     if o.shape != (len(parents), 3):
         raise ValueError(f"offsets must have shape ({len(parents)}, 3), got {tuple(o.shape)}")
-    return o[[j for j, p in enumerate(parents) if p >= 0]].norm(dim=-1)
+    return o[bone_pairs(parents)[0]].norm(dim=-1)
 
 
 def bone_length_error(

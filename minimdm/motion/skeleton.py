@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,9 @@ __all__ = [
     "yaw_matrix",
     "heading_angle",
     "wrap_angle",
+    "rotate_about_z",
+    "to_heading_frame",
+    "bone_pairs",
 ]
 
 HUMANOID_SCALE = 0.25
@@ -267,9 +271,50 @@ def matrix_to_euler(R: Tensor, order: str = "ZYX") -> Tensor:
 # --------------------------------------------------------------------------- heading (yaw)
 
 
-def wrap_angle(a: Tensor) -> Tensor:
-    """Wrap angles to ``(-pi, pi]``."""
+def wrap_angle(a: Tensor, include_pi: bool = True) -> Tensor:
+    """Wrap angles ``(...)`` to ``(-pi, pi]``, or with ``include_pi=False`` to ``[-pi, pi)``.
+
+    The result differs from ``a`` by a multiple of 2 pi. The two intervals differ only in which
+    end they keep; they are computed in two ways (``ceil``, ``remainder``), so their last bits
+    may differ too.
+    """
+    if not include_pi:
+        return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
     return a - 2 * math.pi * torch.ceil((a - math.pi) / (2 * math.pi))
+
+
+def _cos_sin(angle: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """cos and sin of ``angle``, with trailing dimensions added to broadcast over ``v[..., 0]``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    while c.dim() < v.dim() - 1:
+        c, s = c[..., None], s[..., None]
+    return c, s
+
+
+def rotate_about_z(v: Tensor, angle: Tensor) -> Tensor:
+    """Vectors ``v (..., 2)`` or ``(..., 3)`` rotated by ``angle`` radians about the up axis z.
+
+    :math:`R_z(a)\\,(x, y) = (x \\cos a - y \\sin a,\\; x \\sin a + y \\cos a)`; a z component
+    passes through. ``angle`` has the leading shape of ``v``'s batch dimensions, e.g. ``(N,)``
+    for ``v (N, ..., 2)``. From a heading frame to the world is ``rotate_about_z(v, heading)``.
+    Returns the shape of ``v``.
+    """
+    c, s = _cos_sin(angle, v)
+    x, y = v[..., 0], v[..., 1]
+    return torch.stack([c * x - s * y, s * x + c * y, *v[..., 2:].unbind(-1)], dim=-1)
+
+
+def to_heading_frame(v: Tensor, heading: Tensor) -> Tensor:
+    """World vectors ``v (..., 2)`` or ``(..., 3)`` in the heading frame of ``heading``.
+
+    The heading frame has +x ahead and +y on the left (a heading of 0 faces +x):
+    :math:`R_z(-h)\\,(x, y) = (x \\cos h + y \\sin h,\\; -x \\sin h + y \\cos h)`, the inverse
+    of :func:`rotate_about_z`; a z component passes through. ``heading`` has the leading shape
+    of ``v``'s batch dimensions, e.g. ``(N,)`` for ``v (N, ..., 2)``. Returns the shape of ``v``.
+    """
+    c, s = _cos_sin(heading, v)
+    x, y = v[..., 0], v[..., 1]
+    return torch.stack([c * x + s * y, -s * x + c * y, *v[..., 2:].unbind(-1)], dim=-1)
 
 
 def yaw_matrix(yaw: Tensor) -> Tensor:
@@ -292,6 +337,13 @@ def heading_angle(R: Tensor, lateral_axis: Any = (0.0, 1.0, 0.0)) -> Tensor:
 
 
 # --------------------------------------------------------------------------- skeleton
+
+
+def bone_pairs(parents: Sequence[int]) -> tuple[list[int], list[int]]:
+    """The bones of a kinematic tree: ``(children, parents)``, one entry per joint with a parent
+    (``parents[j] >= 0``), in joint order. Index joint positions ``(..., J, 3)`` with them."""
+    children = [j for j, p in enumerate(parents) if p >= 0]
+    return children, [parents[j] for j in children]
 
 
 @dataclass(eq=False)

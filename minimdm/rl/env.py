@@ -32,6 +32,7 @@ from torch import Tensor
 from minimdm.amdm.models import MVAE
 from minimdm.amdm.sampling import Sampler
 from minimdm.motion import metrics
+from minimdm.motion.skeleton import rotate_about_z, wrap_angle
 from minimdm.validate import check_frames, check_int, check_number
 
 from .residual import ResidualSchedule, feature_indices, residual_hook
@@ -53,13 +54,19 @@ OBSERVATIONS = ("frame", "root")
 choice, D numbers) or only its root velocity and yaw rate (3 numbers)."""
 
 
+def _non_finite_row(x: Tensor) -> int | None:
+    """The first row of ``x`` (N, D) that holds NaN or Inf, or None when every value is finite."""
+    if torch.isfinite(x).all():
+        return None
+    return (~torch.isfinite(x)).any(1).nonzero()[0].item()
+
+
 def check_actions(actions: Any, n: int, dim: int) -> Tensor:
     """``actions`` as a float32 (n, dim) tensor; ``ValueError`` for another shape or NaN/Inf."""
     a = torch.as_tensor(np.asarray(actions), dtype=torch.float32)
     if a.shape != (n, dim):
         raise ValueError(f"actions must have shape ({n}, {dim}), got {tuple(a.shape)}")
-    if not torch.isfinite(a).all():
-        bad = (~torch.isfinite(a)).any(1).nonzero()[0].item()
+    if (bad := _non_finite_row(a)) is not None:
         raise ValueError(f"actions must be finite, but environment {bad} holds NaN/Inf")
     return a
 
@@ -164,9 +171,7 @@ class _FrameQuality:
         return feats[:, self.pos_sl].unflatten(-1, (self.J, 3))
 
     def _feet_world(self, p: Tensor, xy: Tensor, heading: Tensor) -> Tensor:
-        c, s = torch.cos(heading)[:, None], torch.sin(heading)[:, None]
-        fx, fy = p[:, self.feet, 0], p[:, self.feet, 1]
-        return torch.stack([c * fx - s * fy, s * fx + c * fy], -1) + xy[:, None, :]
+        return rotate_about_z(p[:, self.feet, :2], heading) + xy[:, None, :]
 
     def reset(self, idx: Tensor, feats: Tensor, xy: Tensor, heading: Tensor) -> None:
         self.prev[idx] = self._feet_world(self._local(feats), xy, heading)
@@ -278,9 +283,7 @@ class SteeringVecEnv(VectorEnv):
         ``heading`` + yaw rate (the frame's own heading)."""
         feats = self._feats(x)
         vel, yaw = feats[:, self._rot_sl[0]], feats[:, self._rot_sl[1]][:, 0]
-        h = heading + yaw
-        c, s = torch.cos(h), torch.sin(h)
-        world = torch.stack([c * vel[:, 0] - s * vel[:, 1], s * vel[:, 0] + c * vel[:, 1]], -1)
+        world = rotate_about_z(vel, heading + yaw)  # the step of decode_root, (M, 2)
         return world * self.cm.fps, yaw
 
     def _obs(self) -> np.ndarray:
@@ -301,12 +304,11 @@ class SteeringVecEnv(VectorEnv):
         """Step every character one frame with ``actions`` (N, A): returns the new frames
         (N, D) normalized and the previous root positions (N, 2). No task, no reset."""
         x = self.steerer(self.x, actions.to(self.cm.device), self.generator)
-        if not torch.isfinite(x).all():
-            bad = (~torch.isfinite(x)).any(1).nonzero()[0].item()
+        if (bad := _non_finite_row(x)) is not None:
             raise FloatingPointError(f"the model produced a non-finite frame for environment {bad}")
         prev = self.ch.xy.clone()
         vel, yaw = self._root_motion(x, self.ch.heading)
-        self.ch.heading = torch.remainder(self.ch.heading + yaw + torch.pi, 2 * torch.pi) - torch.pi
+        self.ch.heading = wrap_angle(self.ch.heading + yaw, include_pi=False)
         self.ch.velocity = vel
         self.ch.xy = self.ch.xy + vel / self.cm.fps
         self.ch.frame = self.ch.frame + 1

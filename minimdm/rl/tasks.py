@@ -19,6 +19,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from minimdm.motion.skeleton import rotate_about_z, to_heading_frame, wrap_angle
+
 __all__ = [
     "Characters",
     "Task",
@@ -56,15 +58,6 @@ class Characters:
     def speed(self) -> Tensor:
         """(N,) planar speed, m/s."""
         return self.velocity.norm(dim=-1)
-
-
-def to_heading_frame(v: Tensor, heading: Tensor) -> Tensor:
-    """World vectors ``v`` (N, ..., 2) in each character's heading frame (+x ahead, +y left)."""
-    c, s = torch.cos(heading), torch.sin(heading)
-    while c.dim() < v.dim() - 1:
-        c, s = c[..., None], s[..., None]
-    x, y = v[..., 0], v[..., 1]
-    return torch.stack([c * x + s * y, -s * x + c * y], dim=-1)
 
 
 def joystick_reward(heading: Tensor, speed: Tensor, goal_heading: Tensor, goal_speed: Tensor):
@@ -321,8 +314,7 @@ class JoystickTask(Task):
         v = self.along(ch)
         reward = joystick_reward(ch.heading, v, self.goal_heading, self.goal_speed)
         info = {
-            "heading_error": torch.remainder(ch.heading - self.goal_heading + math.pi, 2 * math.pi)
-            - math.pi,
+            "heading_error": wrap_angle(ch.heading - self.goal_heading, include_pi=False),
             "speed_error": v - self.goal_speed,
             "out_of_range": self.out_of_range.clone(),
         }
@@ -411,9 +403,7 @@ class PathTask(Task):
         p = procedural_paths(
             len(idx), self.horizon, self.generator, self.speed_range, self.turn_max, fps=ch.fps
         )
-        c, s = torch.cos(ch.heading[idx]), torch.sin(ch.heading[idx])
-        rot = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)  # (M, 2, 2)
-        self.path[idx] = ch.xy[idx, None] + (rot[:, None] @ p[..., None])[..., 0]
+        self.path[idx] = ch.xy[idx, None] + rotate_about_z(p, ch.heading[idx])  # (M, P, 2)
 
     def _points(self, ch: Characters, offsets) -> Tensor:
         f = (ch.frame[:, None] + torch.as_tensor(offsets)[None]).clamp(max=self.horizon)
