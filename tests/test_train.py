@@ -1,5 +1,6 @@
 """Training loop, scheduled sampling and checkpoints on tiny configs with synthetic features."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,35 @@ def test_loss_falls_on_a_tiny_config(tmp_path):
     assert np.mean(losses[-3:]) < 0.7 * losses[0]
     assert result.history[-1]["eval_loss"] < losses[0]
     assert (tmp_path / "model.safetensors").exists() and (tmp_path / "log.jsonl").exists()
+
+
+def test_mvae_weights_carry_the_names_of_its_encoder_and_decoder_mlp(tmp_path):
+    """Training writes, and every shipped MVAE holds, the MVAE's own names: ``encoder.*`` (an
+    nn.Sequential) and ``decoder.*`` (an MLP: input, hidden.i, norms.i, output), nothing else."""
+    from safetensors import safe_open
+
+    from minimdm.nn import MLP
+
+    def names(c: dict) -> set[str]:
+        x, cond, z, w = c["x_dim"], c["cond_dim"], c["latent_dim"], c["width"]
+        enc = MLP(x + cond, 2 * z, w, depth=3).sequential().state_dict()
+        dec = MLP(cond, x, w, c["depth"], concat_dim=z).state_dict()
+        return {f"encoder.{k}" for k in enc} | {f"decoder.{k}" for k in dec}
+
+    cfg = tiny(model_kind="mvae", latent_dim=4, total_steps=2, ckpt_interval=2)
+    train_amdm(cfg, tmp_path, synthetic_features(), progress=False)
+    want = names(dict(x_dim=D, cond_dim=D, latent_dim=4, width=cfg.width, depth=cfg.depth))
+    assert set(load_checkpoint(tmp_path).model.state_dict()) == want
+    with safe_open(str(tmp_path / "model.safetensors"), "pt") as f:
+        assert set(f.keys()) == want
+    _, state = load_train_state(tmp_path)
+    assert set(state["model"]) == set(state["ema"]) == want
+    metas = {p: json.loads(p.read_text()) for p in (ROOT / "checkpoints").rglob("*.json")}
+    shipped = [p for p, m in metas.items() if m.get("model", {}).get("kind") == "mvae"]
+    assert len(shipped) >= 3
+    for p in shipped:
+        with safe_open(str(p.with_suffix(".safetensors")), "pt") as f:
+            assert set(f.keys()) == names(metas[p]["model"]["config"]), p
 
 
 class Interrupt(Exception):

@@ -206,6 +206,10 @@ class MVAE(nn.Module):
     it cannot be ignored. Trained with reconstruction + β-KL and scheduled sampling; sampled by
     drawing :math:`z \\sim \\mathcal N(0, I)`. Same body as the other networks (SiLU then
     LayerNorm).
+
+    The parameters are ``encoder.*`` (an ``nn.Sequential``: ``encoder.0``, ``encoder.2``, ...)
+    and ``decoder.*`` (an :class:`~minimdm.nn.MLP`: ``decoder.input``, ``decoder.hidden.i``,
+    ``decoder.norms.i``, ``decoder.output``).
     """
 
     def __init__(self, config: MVAEConfig) -> None:
@@ -214,15 +218,10 @@ class MVAE(nn.Module):
             raise ValueError(f"depth must be >= 2, got {config.depth}")
         self.config = config
         c, w = config, config.width
+        # q_phi(z | x_f, x_{f-1}): (B, D + C) -> (B, 2 Z), mean and log-variance
         self.encoder = MLP(c.x_dim + c.cond_dim, 2 * c.latent_dim, w, depth=3).sequential()
-        decoder = MLP(c.cond_dim, c.x_dim, w, c.depth, concat_dim=c.latent_dim)
-        # The decoder's layers keep the names of the shipped checkpoints (decoder.i,
-        # decoder_norms.i, output); ``_decoder`` runs them and is a list so that nn.Module
-        # does not register the same layers twice.
-        self.decoder = nn.ModuleList([decoder.input, *decoder.hidden])
-        self.decoder_norms = decoder.norms
-        self.output = decoder.output
-        self._decoder = [decoder]
+        # p_theta(x_f | z, x_{f-1}): (B, C) -> (B, D), z concatenated to every layer's input
+        self.decoder = MLP(c.cond_dim, c.x_dim, w, c.depth, concat_dim=c.latent_dim)
 
     def _check(self, name: str, x: Tensor, dim: int) -> None:
         if x.dim() != 2 or x.shape[1] != dim:
@@ -239,7 +238,7 @@ class MVAE(nn.Module):
         """The next frame (B, D) from a latent ``z`` (B, latent_dim) and the previous frame."""
         self._check("z", z, self.config.latent_dim)
         self._check("cond", cond, self.config.cond_dim)
-        return self._decoder[0](cond, concat=z)  # (B, D)
+        return self.decoder(cond, concat=z)  # (B, D)
 
     def forward(
         self, x: Tensor, cond: Tensor, generator: torch.Generator | None = None
