@@ -4,7 +4,7 @@ For each model, batch (1 and 64) and thread count (one and all), it times one fr
 denoising step, three ways on the same inputs:
 
 * ``eager``: the library's own step in PyTorch (:class:`minimdm.fast.FrameGraph.frame`, i.e.
-  ``next_frame`` / ``aamdm_frame`` / the policy and its steerer);
+  ``Sampler.frame`` / ``aamdm_frame`` / the policy and its steerer);
 * ``fast``: the same step traced into one ONNX graph, run by ONNX Runtime
   (:class:`minimdm.fast.FastFrame`), its noise drawn from the same generator; it matches eager
   within 1e-4 (``max_abs_diff``);

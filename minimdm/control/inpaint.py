@@ -207,7 +207,7 @@ def inbetween(
     and land on it. Frames after the last keyframe are sampled freely.
 
     Args:
-        model: a loaded Checkpoint or anything :func:`as_control_model` takes; a diffusion
+        model: a loaded Checkpoint or anything :meth:`Sampler.load` takes; a diffusion
             model, sampled with DDPM (all T steps) or with DDIM (``steps`` < T): a chain
             that starts at level :math:`t_0` follows the DDIM grid below it.
         start: (D,) or (B, D) start state x_0, feature units.

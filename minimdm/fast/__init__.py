@@ -11,12 +11,12 @@ write a second sampler. It traces the model's own per-frame step, with its noise
   guidance, the CFG scale an input);
 * :mod:`~minimdm.fast.onnx`: :func:`export_onnx` (the graph, its weights and its metadata in
   one file, ``minimdm export --onnx``), :func:`read_metadata`, and :class:`FastFrame`, the
-  drop-in for the eager step: pass it as ``sampler=`` to
+  drop-in for the eager step: pass it as ``fast=`` to
   :func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`, or (CAMDM)
   as ``planner=`` to :class:`minimdm.camdm.controller.CAMDMController`.
 
     fast = fast_frame("amdm")                       # the shipped book model
-    x1 = fast(x0, torch.Generator().manual_seed(0))  # the eager next_frame's x1, within 1e-4
+    x1 = fast(x0, torch.Generator().manual_seed(0))  # the eager Sampler.frame's x1, within 1e-4
 
     plan = fast_frame("camdm")                      # one planning call: (B, P, D) -> (B, F, D)
     ctl = CAMDMController("checkpoints/camdm", planner=plan)  # the eager controller's frames

@@ -14,7 +14,7 @@ future frames; its metadata adds P, F, T, the guide and the styles (in ``feature
 :class:`FastFrame` runs that graph in an ONNX Runtime inference session. It is a drop-in for the
 eager per-frame step, ``frame = fast(state, generator)``: it draws the frame's noise from the
 generator exactly as the eager chain would (:meth:`~minimdm.diffusion.NoiseTape.draw`), so the
-same seed gives the same frames within float rounding (tests: 1e-4). Pass it as ``sampler=`` to
+same seed gives the same frames within float rounding (tests: 1e-4). Pass it as ``fast=`` to
 :func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`, or use
 :meth:`FastFrame.step` with :func:`~minimdm.amdm.sampling.autoregress`.
 
