@@ -1,7 +1,7 @@
 """The shared pieces of minimdm.nn: the MLP body, the EMA of weights, the learning-rate schedule.
 
-(That the six networks built on the MLP still load the shipped checkpoints and compute what
-they computed before is tests/test_checkpoint_compat.py.)
+(That every shipped checkpoint still loads strictly is tests/test_clip_range.py; that its
+networks compute what they computed before, the chapters' checked outputs.)
 """
 
 import copy
