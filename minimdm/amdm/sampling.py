@@ -396,11 +396,9 @@ def rollout(
         start_pose: root ground position ``xy`` (C, 2) and ``heading`` (C,) at the initial
             frame, where decoding starts (default: the origin, heading 0).
         eta: DDIM stochasticity when ``steps`` < T.
-        clip_x0: clamp the denoiser's clean estimate (normalized units): None, a float c for
-            [-c, c], or a per-feature range ``(lo, hi)`` (:func:`minimdm.diffusion.clip_bounds`)
-            at every step; ``"checkpoint"``: the value the model was trained with (None for a
-            bare network). With eps-prediction and few steps, the first reverse step divides by
-            :math:`\\sqrt{\\bar\\alpha_T}` (tiny), so an unclamped estimate can blow up.
+        clip_x0: clamp the denoiser's clean estimate at every step (normalized units): None,
+            a float c for [-c, c], or a per-feature range ``(lo, hi)``
+            (:func:`minimdm.diffusion.clip_bounds`); ``"checkpoint"``: the model's own.
         decode_positions: also decode global joint positions.
         progress: show a tqdm bar over frames.
         fast: ``fast(x_prev, generator) -> x_f`` (normalized, (B, D)) replaces
@@ -421,16 +419,8 @@ def rollout(
     n_samples = check_int("n_samples", n_samples, low=1)
     if fast is not None and steps is not None:
         raise InputError("steps belong to the fast graph when one is given: pass steps=None")
-    sampler = Sampler.load(
-        model,
-        normalizer=normalizer,
-        schedule=schedule,
-        clip_x0=clip_x0,
-        steps=steps,
-        eta=eta,
-        device=device,
-        name="model",
-    )
+    overrides = dict(normalizer=normalizer, schedule=schedule, clip_x0=clip_x0, steps=steps)
+    sampler = Sampler.load(model, **overrides, eta=eta, device=device)
     check_generator("generator", generator, sampler.device)
     if fast is not None:  # a graph exported from another checkpoint is refused
         _check_fast(fast, sampler)
@@ -452,12 +442,17 @@ def rollout(
     normalized = normalized.reshape(C, K, n_frames, -1)  # (C, K, F, D)
     feats = sampler.denormalize(normalized)
     feats = feats.clone() if feats is normalized else feats
-    positions = None
-    if decode_positions:
-        sp = StartPose.broadcast(start_pose, C)
-        sp = StartPose(sp.xy[:, None].expand(C, K, 2), sp.heading[:, None].expand(C, K))
-        positions = decode(feats.double(), sp).float()  # (C, K, F, J, 3)
+    positions = _positions(feats, start_pose) if decode_positions else None
     return Rollout(features=feats, positions=positions, normalized=normalized)
+
+
+def _positions(feats: Tensor, start_pose: Any) -> Tensor:
+    """(C, K, F, J, 3) global joint positions of (C, K, F, D) frames, each character's K
+    futures decoded from its own start pose."""
+    C, K = feats.shape[:2]
+    sp = StartPose.broadcast(start_pose, C)
+    sp = StartPose(sp.xy[:, None].expand(C, K, 2), sp.heading[:, None].expand(C, K))
+    return decode(feats.double(), sp).float()
 
 
 def _check_fast(fast: Any, sampler: Sampler) -> None:
