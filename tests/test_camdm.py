@@ -380,6 +380,42 @@ def test_training_resumes_from_its_last_checkpoint(tiny, tmp_path):
         train_camdm(tiny_config(total_steps=40, latent=8), tmp_path, data=data, progress=False)
 
 
+class Killed(Exception):
+    pass
+
+
+def _weight_bytes(path) -> bytes:
+    """The tensor bytes of a safetensors file (its header also holds the training time)."""
+    raw = path.read_bytes()
+    return raw[8 + int.from_bytes(raw[:8], "little") :]
+
+
+def test_a_run_killed_while_writing_its_log_resumes_bit_exactly(tiny, tmp_path):
+    """A kill in the middle of writing a log line leaves a torn last line; the resumed run drops
+    it with the records past its checkpoint and ends with the very bytes of an uninterrupted
+    run: weights, EMA, optimizer and generator state, and the log itself."""
+    _, data = tiny
+    config = tiny_config(total_steps=30, log_interval=5, ckpt_interval=10, ema_decay=0.9)
+    full, cut = tmp_path / "full", tmp_path / "cut"
+    train_camdm(config, full, data=data, progress=False)
+
+    def kill(step, record):
+        if step == 15:  # the log holds steps 5, 10, 15; the last checkpoint is step 10's
+            log = cut / "log.jsonl"
+            text = log.read_bytes()
+            log.write_bytes(text[: len(text) - 40])  # the kill lands inside step 15's line
+            raise Killed
+
+    with pytest.raises(Killed):
+        train_camdm(config, cut, data=data, progress=False, callback=kill)
+    with pytest.warns(UserWarning, match="torn last log line"):
+        ckpt = train_camdm(config, cut, data=data, progress=False)
+    assert ckpt.step == 30
+    for name in ("model.safetensors", "model.train.safetensors"):
+        assert _weight_bytes(cut / name) == _weight_bytes(full / name), name
+    assert (cut / "log.jsonl").read_bytes() == (full / "log.jsonl").read_bytes()
+
+
 # ------------------------------------------------------------------------------ the controller
 
 

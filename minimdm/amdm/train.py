@@ -31,19 +31,16 @@ not bit-identical to an uninterrupted one.
 
 The config is :class:`~minimdm.amdm.train_config.TrainConfig` (re-exported here with
 :func:`load_config` and :func:`student_probability`); the losses are in
-:mod:`minimdm.amdm.losses`; this module holds the loop.
+:mod:`minimdm.amdm.losses`; the loop (resume, EMA, log, checkpoints) is the one of
+:mod:`minimdm.training`, shared with CAMDM; this module holds what is A-MDM's own: the data, the
+batches and their loss, the evaluation and the checkpoint's metadata.
 """
 
 from __future__ import annotations
 
-import copy
-import json
 import os
-import platform
-import time
-import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +48,6 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 from torch.nn.parallel import DistributedDataParallel
-from tqdm.auto import tqdm
 
 from minimdm import distributed
 from minimdm.amdm.losses import FrameGeometry, make_windows, window_loss
@@ -62,23 +58,16 @@ from minimdm.amdm.train_config import (
     load_config,
     student_probability,
 )
-from minimdm.checkpoint import (
-    Checkpoint,
-    checkpoint_paths,
-    load_checkpoint,
-    load_train_state,
-    resume_training,
-    save_checkpoint,
-)
+from minimdm.checkpoint import Checkpoint, load_checkpoint
 from minimdm.diffusion import (
     NoiseSchedule,
     clamp_share,
     clip_bounds,
     data_range,
 )
-from minimdm.files import RunLock, atomic_write
+from minimdm.files import RunLock
 from minimdm.motion.corpora import LOCOMOTION
-from minimdm.nn import ema_update, optimizer_step, set_lr
+from minimdm.training import Recipe, StepOut, TrainState, read_log, start_training, train_loop
 from minimdm.utils import num_threads as threads
 from minimdm.validate import InputError, InputTypeError, check_output_dir, describe
 
@@ -254,6 +243,7 @@ def _train(
     callback: Callable[[int, dict[str, float]], None] | None,
     metadata: dict[str, Any] | None,
 ) -> TrainResult:
+    """The A-MDM parts (data, batches, losses, evaluation, metadata) on the shared loop."""
     out_dir = Path(out_dir)
     world = distributed.setup(config.device)  # one process, or one of torchrun's N
     if config.batch_size % world.size:
@@ -261,216 +251,190 @@ def _train(
             f"batch_size {config.batch_size} must divide among the {world.size} processes"
         )
     device = torch.device(world.device)
-    clip_names, heldout, contents = None, None, None
-    if features is None:
-        loaded = _load_data(config)
-        contents = loaded["contents"]
-        features, clip_names, heldout = loaded["features"], loaded["clip_names"], loaded["heldout"]
-        normalizer, skeleton, layout = loaded["normalizer"], loaded["skeleton"], loaded["layout"]
-    windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
-    weights = None  # None: uniform over windows
-    if config.locomotion_share is not None:
-        if contents is None:
-            raise InputError("locomotion_share needs the corpus's content labels, not features")
-        lengths = [len(f) for f in features]
-        weights = window_weights(lengths, config.rollout, contents, config.locomotion_share)
-        weights = weights.to(device)
-    clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
-    x_dim = windows.shape[-1]
-    schedule = NoiseSchedule(config.schedule, config.T, device=device)
-
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        model = build_network(config, x_dim).to(device)
-    ema = copy.deepcopy(model).eval() if config.ema_decay > 0 else None
-    for p in ema.parameters() if ema is not None else ():
-        p.requires_grad_(False)
-    params = list(model.parameters())
-    # DDP averages the gradients over the processes during backward (minimdm.distributed)
-    trained = model if world.size == 1 else DistributedDataParallel(model)
-    opt = torch.optim.Adam(params, lr=config.lr)
-    gen = torch.Generator(device=device).manual_seed(config.seed)
-    paths = checkpoint_paths(out_dir)
-    step, prior_seconds = 0, 0.0  # prior_seconds: training time of the runs this one resumes
-    segments: list[dict] = []  # the earlier calls that trained this run (model.json "segments")
-    if resume:
-        step, prior_seconds = resume_training(
-            out_dir, asdict(config), model, opt, gen, ema, resumable=_RESUMABLE_CHANGES
-        )
-        if step:
-            segments = list(load_train_state(out_dir)[0].get("segments", []))
-    segment = {
-        "command": (metadata or {}).get("command"),
-        "host": platform.node(),
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "threads": torch.get_num_threads(),
-        "device": str(device),
-        "from_step": step,
-    }
+    data = _Data.build(config, features, normalizer, skeleton, layout, device)
+    state = start_training(
+        config,
+        out_dir,
+        lambda: build_network(config, data.windows.shape[-1]).to(device),
+        torch.Generator(device=device),
+        resume=resume,
+        resumable=_RESUMABLE_CHANGES,
+    )
     if world.size > 1:  # each process draws its own batches: a generator per rank and start
-        gen.manual_seed(config.seed + 7919 * world.rank + 104729 * step)
+        state.generator.manual_seed(config.seed + 7919 * world.rank + 104729 * state.step)
+    recipe = Recipe(
+        name=config.model_kind,
+        learning_rate=lambda step: learning_rate(config, step),
+        batch_loss=_batch_loss(config, data, state, world),
+        evaluate=_evaluator(config, data, eval_fn),
+        metadata=_metadata(config, data, metadata),
+        device=str(device),
+        storage=config.storage,
+    )
+    run = train_loop(
+        config, out_dir, state, recipe, progress=progress, callback=callback, is_main=world.is_main
+    )
+    if world.size > 1:
+        torch.distributed.barrier()  # rank 0's checkpoint is on disk before anyone loads it
+    distributed.teardown(world)
+    done = run.step - run.start_step
+    return TrainResult(
+        checkpoint=load_checkpoint(out_dir, device=device),
+        steps=run.step,
+        seconds=run.seconds,
+        steps_per_second=done / run.seconds if run.seconds > 0 and done else 0.0,
+        history=run.history,
+    )
 
-    metadata_base = {
-        **(metadata or {}),
-        "config": asdict(config),
-        "config_file": config.config_file,
-        "feature_layout": layout,
-        "skeleton": skeleton,
-        "normalizer": normalizer,
-        "ema": ema is not None,
-        "data": {
-            "corpus": config.corpus,
-            "split": config.split,
-            "clips": clip_names,
-            "fps": config.fps,
-            "windows": int(windows.shape[0]),
-        },
-    }
-    if config.model_kind == "amdm":
-        metadata_base["diffusion"] = {
-            "schedule": config.schedule,
-            "T": config.T,
-            "predicts": config.predicts,
-            "clip_x0": clip_x0,
-        }
 
-    def save(at_step: int) -> None:
-        if not world.is_main:
-            return
-        state = {
-            "step": at_step,
-            "model": model.state_dict(),
-            "ema": ema.state_dict() if ema is not None else None,
-            "optimizer": opt.state_dict(),
-            "generator": gen.get_state(),
-        }
-        seconds = prior_seconds + time.perf_counter() - t0  # wall time of the loop, all runs
-        this = {**segment, "to_step": at_step, "seconds": round(time.perf_counter() - t0, 1)}
-        meta = dict(metadata_base, step=at_step, train_seconds=round(seconds, 1))
-        meta["segments"] = [*segments, this]  # one per call: a run may span sessions
-        save_checkpoint(
-            out_dir,
-            ema if ema is not None else model,
-            meta,
-            optimizer_state=state,
-            storage=config.storage,
+@dataclass
+class _Data:
+    """The training windows of a run and what its losses and checkpoint need to know of them."""
+
+    windows: Tensor
+    """(W, N_r + 1, D): every window of N_r + 1 consecutive normalized frames."""
+    weights: Tensor | None
+    """(W,) sampling weights of the windows (None: uniform)."""
+    heldout: Tensor | None
+    """The held-out takes' windows, or None."""
+    clip_x0: Any
+    """The config's ``clip_x0`` made concrete (:func:`resolve_clip_x0`)."""
+    normalizer: Any
+    skeleton: Any
+    layout: Any
+    clip_names: list[str] | None
+
+    @classmethod
+    def build(
+        cls,
+        config: TrainConfig,
+        features: Sequence[Tensor | np.ndarray] | None,
+        normalizer: Any,
+        skeleton: Any,
+        layout: Any,
+        device: torch.device,
+    ) -> _Data:
+        """The config's clips (``features`` None) or the given in-memory features, windowed."""
+        clip_names, heldout, contents = None, None, None
+        if features is None:
+            loaded = _load_data(config)
+            contents, clip_names = loaded["contents"], loaded["clip_names"]
+            features, heldout = loaded["features"], loaded["heldout"]
+            normalizer, skeleton, layout = (loaded[k] for k in ("normalizer", "skeleton", "layout"))
+        windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
+        weights = None  # None: uniform over windows
+        if config.locomotion_share is not None:
+            if contents is None:
+                raise InputError("locomotion_share needs the corpus's content labels, not features")
+            lengths = [len(f) for f in features]
+            weights = window_weights(lengths, config.rollout, contents, config.locomotion_share)
+            weights = weights.to(device)
+        heldout_windows = None
+        if heldout:
+            heldout_windows = make_windows(heldout, config.rollout).to(device)
+        clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
+        return cls(
+            windows, weights, heldout_windows, clip_x0, normalizer, skeleton, layout, clip_names
         )
 
-    loss_kw = dict(
+
+def _loss_kw(config: TrainConfig, data: _Data, device: torch.device) -> dict[str, Any]:
+    """The keyword arguments of :func:`window_loss` shared by training and evaluation."""
+    return dict(
         kind=config.model_kind,
-        schedule=schedule,
+        schedule=NoiseSchedule(config.schedule, config.T, device=device),
         predicts=config.predicts,
         kl_beta=config.kl_beta,
-        clip_x0=clip_x0,
+        clip_x0=data.clip_x0,
+        norm=config.norm,
     )
-    loss_kw["norm"] = config.norm
+
+
+def _batch_loss(
+    config: TrainConfig, data: _Data, state: TrainState, world: distributed.World
+) -> Callable[[int], StepOut]:
+    """A batch of windows drawn by the run's generator and its scheduled-sampling loss."""
+    windows, weights, gen = data.windows, data.weights, state.generator
+    # DDP averages the gradients over the processes during backward (minimdm.distributed)
+    trained = state.model if world.size == 1 else DistributedDataParallel(state.model)
     train_kw = dict(
-        loss_kw,
+        _loss_kw(config, data, windows.device),
         teacher_weight=config.teacher_weight,
         student_steps=config.student_steps,
         snr_gamma=config.snr_gamma,
         snr_floor=config.snr_floor,
-        geometry=_geometry(config, windows, normalizer, skeleton),
+        geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )
 
-    # Built-in evaluation: teacher-forced loss on fixed windows with its own generator, on the
-    # training takes (eval_loss) and, when the config trains on a split, the test takes.
-    eval_gen = torch.Generator(device=device)
-    eval_idx = torch.randperm(windows.shape[0], generator=torch.Generator().manual_seed(1234))
-    eval_windows = windows[eval_idx[: config.eval_windows].to(device)]
-    heldout_windows = None
-    if heldout:  # the same number of windows from the held-out takes
-        hw = make_windows(heldout, config.rollout).to(device)
-        h_idx = torch.randperm(hw.shape[0], generator=torch.Generator().manual_seed(1234))
-        heldout_windows = hw[h_idx[: config.eval_windows].to(device)]
+    def batch_loss(step: int) -> StepOut:
+        p = student_probability(config, step)
+        B, W = config.batch_size // world.size, windows.shape[0]  # this process's share
+        if weights is None:
+            idx = torch.randint(W, (B,), generator=gen, device=windows.device)
+        else:
+            idx = torch.multinomial(weights, B, replacement=True, generator=gen)
+        loss, info = window_loss(trained, windows[idx], p, gen, **train_kw)
+        return StepOut(loss, status={"p_student": p}, extra=info)
 
-    def evaluate(at_step: int) -> dict[str, float]:
-        net = ema if ema is not None else model
+    return batch_loss
+
+
+def _evaluator(
+    config: TrainConfig,
+    data: _Data,
+    eval_fn: Callable[[nn.Module, int], dict[str, float]] | None,
+) -> Callable[[nn.Module, int], dict[str, float]]:
+    """Built-in evaluation: the teacher-forced loss on fixed windows with its own generator, on
+    the training takes (``eval_loss``) and, when the config trains on a split, the test takes
+    (``heldout_loss``); then ``eval_fn``'s metrics."""
+    device = data.windows.device
+    loss_kw = _loss_kw(config, data, device)
+    eval_gen = torch.Generator(device=device)
+    sets = {"eval_loss": data.windows}
+    if data.heldout is not None:  # the same number of windows from the held-out takes
+        sets["heldout_loss"] = data.heldout
+    for name, w in sets.items():
+        idx = torch.randperm(w.shape[0], generator=torch.Generator().manual_seed(1234))
+        sets[name] = w[idx[: config.eval_windows].to(device)]
+
+    def evaluate(net: nn.Module, step: int) -> dict[str, float]:
         net.eval()
-        eval_gen.manual_seed(config.seed + 1)
+        out = {}
         with torch.no_grad():
-            loss, _ = window_loss(net, eval_windows, 0.0, eval_gen, **loss_kw)
-            out = {"eval_loss": float(loss)}
-            if heldout_windows is not None:
+            for name, windows in sets.items():
                 eval_gen.manual_seed(config.seed + 1)
-                loss, _ = window_loss(net, heldout_windows, 0.0, eval_gen, **loss_kw)
-                out["heldout_loss"] = float(loss)
+                loss, _ = window_loss(net, windows, 0.0, eval_gen, **loss_kw)
+                out[name] = float(loss)
         if eval_fn is not None:
-            out.update(eval_fn(net, at_step))
-        model.train()
+            out.update(eval_fn(net, step))
         return out
 
-    log_path = out_dir / "log.jsonl"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if log_path.exists() and world.is_main:  # drop records past the resumed step
-        keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
-        atomic_write(log_path, "".join(ln + "\n" for ln in keep))
-    history: list[dict] = []
+    return evaluate
 
-    def log(record: dict) -> None:
-        history.append(record)
-        if not world.is_main:
-            return
-        with open(log_path, "a") as f:
-            f.write(json.dumps(record) + "\n")
 
-    model.train()
-    start_step = step
-    t0 = time.perf_counter()
-    with tqdm(
-        total=config.total_steps,
-        initial=step,
-        disable=not progress or not world.is_main,
-        desc=config.model_kind,
-    ) as bar:
-        running, n_running = 0.0, 0
-        while step < config.total_steps:
-            lr = learning_rate(config, step)
-            set_lr(opt, lr)
-            p = student_probability(config, step)
-            B, W = config.batch_size // world.size, windows.shape[0]  # this process's share
-            if weights is None:
-                idx = torch.randint(W, (B,), generator=gen, device=device)
-            else:
-                idx = torch.multinomial(weights, B, replacement=True, generator=gen)
-            loss, info = window_loss(trained, windows[idx], p, gen, **train_kw)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
-            optimizer_step(opt, loss, params, config.grad_clip)
-            if ema is not None:
-                ema_update(ema, model, config.ema_decay, step)
-            step += 1
-            running, n_running = running + loss.item(), n_running + 1
-            record = {"step": step, "loss": loss.item(), "p_student": p, "lr": lr, **info}
-            bar.update(1)
-            last = step == config.total_steps
-            if last or step % config.log_interval == 0:
-                rec = {"step": step, "loss": running / n_running, "p_student": p, "lr": lr}
-                log(rec)
-                bar.set_postfix(loss=f"{rec['loss']:.4f}", p=f"{p:.2f}")
-                running, n_running = 0.0, 0
-            if last or (config.eval_interval and step % config.eval_interval == 0):
-                ev = evaluate(step)
-                log({"step": step, **ev})
-                record.update(ev)
-            if last or (config.ckpt_interval and step % config.ckpt_interval == 0):
-                save(step)
-            if callback is not None:
-                callback(step, record)
-    seconds = time.perf_counter() - t0
-    if step == start_step and not paths.weights.exists():
-        save(step)
-    if world.size > 1:
-        torch.distributed.barrier()  # rank 0's checkpoint is on disk before anyone loads it
-    distributed.teardown(world)
-    done = step - start_step
-    return TrainResult(
-        checkpoint=load_checkpoint(out_dir, device=device),
-        steps=step,
-        seconds=seconds,
-        steps_per_second=done / seconds if seconds > 0 and done else 0.0,
-        history=history,
-    )
+def _metadata(config: TrainConfig, data: _Data, metadata: dict[str, Any] | None) -> dict:
+    """What an A-MDM checkpoint records besides the config: data, layout, normalizer..."""
+    meta = {
+        **(metadata or {}),
+        "feature_layout": data.layout,
+        "skeleton": data.skeleton,
+        "normalizer": data.normalizer,
+        "data": {
+            "corpus": config.corpus,
+            "split": config.split,
+            "clips": data.clip_names,
+            "fps": config.fps,
+            "windows": int(data.windows.shape[0]),
+        },
+    }
+    if config.model_kind == "amdm":
+        meta["diffusion"] = {
+            "schedule": config.schedule,
+            "T": config.T,
+            "predicts": config.predicts,
+            "clip_x0": data.clip_x0,
+        }
+    return meta
 
 
 def _geometry(config: TrainConfig, windows: Tensor, normalizer: Any, skeleton: Any):
@@ -508,39 +472,6 @@ def _geometry(config: TrainConfig, windows: Tensor, normalizer: Any, skeleton: A
 
 # --------------------------------------------------------------------------------------------
 # The x0 clamp: the training data's range
-
-
-def read_log(path: str | os.PathLike) -> list[tuple[str, dict]]:
-    """The records of a training log (``log.jsonl``), each with its line of text.
-
-    A process killed while appending leaves a torn last line: it is skipped with a warning that
-    names the file (the training state, written atomically, is intact). A bad line elsewhere is
-    no kill's doing and raises a ``ValueError`` naming the file and the line.
-    """
-    path = Path(path)
-    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
-    while lines and not lines[-1].strip():
-        lines.pop()
-    out = []
-    for i, ln in enumerate(lines, start=1):
-        try:
-            rec = json.loads(ln)
-            if not isinstance(rec, dict) or not isinstance(rec.get("step"), int):
-                raise ValueError("a record must be a JSON object with an integer 'step'")
-        except ValueError as e:
-            if i == len(lines):
-                warnings.warn(
-                    f"{path}:{i}: skipping a torn last log line (a run killed while writing "
-                    f"it?): {ln[:60]!r}",
-                    stacklevel=2,
-                )
-                break
-            raise ValueError(
-                f"{path}:{i}: expected a JSON log record with a 'step', got {ln[:60]!r} ({e}); "
-                "fix or delete that line to resume"
-            ) from None
-        out.append((ln, rec))
-    return out
 
 
 def resolve_clip_x0(clip_x0: Any, frames: Sequence[Tensor | np.ndarray]) -> Any:

@@ -17,6 +17,9 @@ and :math:`\\mathcal L_{vel}` the squared error of the joints' velocities. The p
 replaced by the learned null with probability ``p_drop_past`` (0.15, for eq. 5), the style by the
 null style with ``p_drop_style`` (for the rejected CFG-S). All randomness comes from one
 generator seeded by ``seed``; a run resumed from its training state continues bit for bit.
+The loop itself (resume, EMA, log, atomic checkpoints) is the one of :mod:`minimdm.training`,
+shared with A-MDM; this module holds what is CAMDM's own: the data, the batches and the loss of
+eq. 4, the evaluation and the checkpoint's metadata.
 
 ``minimdm camdm train configs/camdm.yaml`` runs it from the command line (into ``runs/camdm/``;
 ``--ship`` replaces the shipped ``checkpoints/camdm/``).
@@ -24,32 +27,22 @@ generator seeded by ``seed``; a run resumed from its training state continues bi
 
 from __future__ import annotations
 
-import copy
-import json
 import os
-import time
-from dataclasses import asdict, dataclass
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
 
-from minimdm.amdm.train import read_log
-from minimdm.checkpoint import (
-    Checkpoint,
-    CheckpointMismatchError,
-    checkpoint_paths,
-    load_checkpoint,
-    resume_training,
-    save_checkpoint,
-)
+from minimdm.checkpoint import Checkpoint, CheckpointMismatchError, load_checkpoint
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
-from minimdm.files import RunLock, atomic_write
+from minimdm.files import RunLock
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton
-from minimdm.nn import cosine_lr, ema_update, optimizer_step, set_lr
+from minimdm.nn import cosine_lr
+from minimdm.training import Recipe, StepOut, start_training, train_loop
 from minimdm.utils import num_threads as threads
 from minimdm.validate import check_output_dir
 
@@ -224,59 +217,73 @@ def train_camdm(
     progress: bool = True,
     num_threads: int | None = None,
     metadata: dict[str, Any] | None = None,
+    callback: Callable[[int, dict[str, Any]], None] | None = None,
 ) -> Checkpoint:
     """Train CAMDM; the checkpoint (EMA weights), its training state and ``log.jsonl`` go to
-    ``out_dir``. ``data`` replaces the corpus (tests pass tiny windows)."""
+    ``out_dir``. ``data`` replaces the corpus (tests pass tiny windows). ``callback(step,
+    record)`` runs after every step; raising from it stops the run (e.g. to simulate a kill)."""
     out_dir = check_output_dir("out_dir", out_dir)
     with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
-        return _train(config, Path(out_dir), data, resume, progress, metadata or {})
+        return _train(config, Path(out_dir), data, resume, progress, metadata or {}, callback)
 
 
-def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
+def _train(
+    config: CAMDMTrainConfig,
+    out_dir: Path,
+    data: TrainData | None,
+    resume: bool,
+    progress: bool,
+    metadata: dict[str, Any],
+    callback: Callable[[int, dict[str, Any]], None] | None,
+) -> Checkpoint:
+    """The CAMDM parts (batches, eq. 4, evaluation, metadata) on the shared loop."""
     device = torch.device(config.device)
     data = data or prepare_data(config)
     L = data.layout
     schedule = NoiseSchedule(config.schedule, config.T, device=device)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        model = CAMDM(config.model_config(L.dim, len(L.styles))).to(device)
-    ema = copy.deepcopy(model).eval() if config.ema_decay > 0 else None
-    params = list(model.parameters())
-    opt = torch.optim.Adam(params, lr=config.lr)
-    gen = torch.Generator().manual_seed(config.seed)
+    state = start_training(
+        config,
+        out_dir,
+        lambda: CAMDM(config.model_config(L.dim, len(L.styles))).to(device),
+        torch.Generator(),  # on the CPU: a GPU run draws the CPU run's batches
+        resume=resume,
+        resumable=_RESUMABLE,
+    )
     sigmas = [0.0, 0.0, 5.0, 10.0] if config.smooth_sigmas is None else list(config.smooth_sigmas)
-    paths = checkpoint_paths(out_dir)
-    step, prior_seconds = 0, 0.0
-    if resume:
-        step, prior_seconds = resume_training(
-            out_dir, asdict(config), model, opt, gen, ema, resumable=_RESUMABLE
+
+    def batch_loss(step: int) -> StepOut:
+        gen = state.generator
+        idx = torch.randint(len(data.bank), (config.batch_size,), generator=gen)
+        x0, cond = make_batch(data, idx, sigmas, gen)
+        loss, terms = camdm_loss(
+            state.model, schedule, x0.to(device), _to(cond, device), data, config, gen
         )
-    meta_base = {
-        **metadata,
-        "config": asdict(config),
-        "config_file": config.config_file,
-        "feature_layout": L,
-        "skeleton": data.skeleton,
-        "normalizer": {"window": data.window_norm, "traj": data.traj_norm},
-        "diffusion": {"schedule": config.schedule, "T": config.T, "predicts": "x0"},
-        "ema": ema is not None,
-        "data": {"corpus": config.corpus, "split": config.split, "clips": data.clip_names,
-                 "windows": len(data.bank)},
-    }  # fmt: skip
+        return StepOut(loss, terms=terms)
 
-    def save(at: int) -> None:
-        state = {
-            "step": at, "model": model.state_dict(), "optimizer": opt.state_dict(),
-            "ema": ema.state_dict() if ema is not None else None, "generator": gen.get_state(),
-        }  # fmt: skip
-        seconds = round(prior_seconds + time.perf_counter() - t0, 1)
-        meta = dict(meta_base, step=at, train_seconds=seconds)
-        save_checkpoint(out_dir, ema if ema is not None else model, meta, optimizer_state=state)
+    recipe = Recipe(
+        name="camdm",
+        learning_rate=lambda step: cosine_lr(
+            step, config.total_steps, config.lr, config.lr_min, config.warmup_steps
+        ),
+        batch_loss=batch_loss,
+        evaluate=_evaluator(config, data, schedule, device),
+        metadata=_metadata(config, data, metadata),
+        device=str(device),
+        record_segments=False,  # CAMDM's model.json has not recorded them
+        state_order=("step", "model", "optimizer", "ema", "generator"),  # as its files have it
+    )
+    train_loop(config, out_dir, state, recipe, progress=progress, callback=callback)
+    return load_checkpoint(out_dir, device=device)
 
+
+def _evaluator(
+    config: CAMDMTrainConfig, data: TrainData, schedule: NoiseSchedule, device: torch.device
+) -> Callable[[torch.nn.Module, int], dict[str, float]]:
+    """The loss of eq. 4 on 256 fixed windows of the training takes (``eval_loss``) and of the
+    held-out takes (``heldout_loss``), unsmoothed, with draws of its own generator."""
     eval_idx = torch.randperm(len(data.bank), generator=torch.Generator().manual_seed(1234))[:256]
 
-    def evaluate() -> dict[str, float]:
-        net = ema if ema is not None else model
+    def evaluate(net: torch.nn.Module, step: int) -> dict[str, float]:
         g = torch.Generator().manual_seed(config.seed + 1)
         out = {}
         banks = {"eval_loss": (data.bank, eval_idx)}
@@ -292,53 +299,24 @@ def _train(config, out_dir, data, resume, progress, metadata) -> Checkpoint:
                 out[name] = float(loss)
         return out
 
-    log_path = out_dir / "log.jsonl"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if log_path.exists():  # drop records past the resumed step (and a line torn by a kill)
-        keep = [ln for ln, rec in read_log(log_path) if rec["step"] <= step]
-        atomic_write(log_path, "".join(ln + "\n" for ln in keep))
+    return evaluate
 
-    def log(rec: dict) -> None:
-        with open(log_path, "a") as f:
-            f.write(json.dumps(rec) + "\n")
 
-    model.train()
-    t0 = time.perf_counter()
-    running: dict[str, float] = {}
-    n = 0
-    with tqdm(total=config.total_steps, initial=step, disable=not progress, desc="camdm") as bar:
-        while step < config.total_steps:
-            lr = cosine_lr(step, config.total_steps, config.lr, config.lr_min, config.warmup_steps)
-            set_lr(opt, lr)
-            idx = torch.randint(len(data.bank), (config.batch_size,), generator=gen)
-            x0, cond = make_batch(data, idx, sigmas, gen)
-            loss, terms = camdm_loss(
-                model, schedule, x0.to(device), _to(cond, device), data, config, gen
-            )
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"training loss became {loss.item()} at step {step}")
-            optimizer_step(opt, loss, params, config.grad_clip)
-            if ema is not None:
-                ema_update(ema, model, config.ema_decay, step)
-            step += 1
-            n += 1
-            for k, v in {"loss": loss.item(), **terms}.items():
-                running[k] = running.get(k, 0.0) + v
-            bar.update(1)
-            last = step == config.total_steps
-            if last or step % config.log_interval == 0:
-                rec = {"step": step, **{k: v / n for k, v in running.items()}, "lr": lr}
-                log(rec)
-                bar.set_postfix(loss=f"{rec['loss']:.4f}")
-                running, n = {}, 0
-            if last or (config.eval_interval and step % config.eval_interval == 0):
-                log({"step": step, **evaluate()})
-                model.train()
-            if last or (config.ckpt_interval and step % config.ckpt_interval == 0):
-                save(step)
-    if not paths.weights.exists():
-        save(step)
-    return load_checkpoint(out_dir, device=device)
+def _metadata(config: CAMDMTrainConfig, data: TrainData, metadata: dict[str, Any]) -> dict:
+    """What a CAMDM checkpoint records besides the config: layout, skeleton, normalizers..."""
+    return {
+        **metadata,
+        "feature_layout": data.layout,
+        "skeleton": data.skeleton,
+        "normalizer": {"window": data.window_norm, "traj": data.traj_norm},
+        "diffusion": {"schedule": config.schedule, "T": config.T, "predicts": "x0"},
+        "data": {
+            "corpus": config.corpus,
+            "split": config.split,
+            "clips": data.clip_names,
+            "windows": len(data.bank),
+        },
+    }
 
 
 _RESUMABLE = {
