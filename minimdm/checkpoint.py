@@ -47,6 +47,7 @@ from minimdm.validate import InputError, MismatchError
 
 __all__ = [
     "FORMAT",
+    "DEFAULT_FPS",
     "Checkpoint",
     "CheckpointMismatchError",
     "CheckpointError",
@@ -65,6 +66,9 @@ __all__ = [
 
 FORMAT = "minimdm-checkpoint/1"
 """Format tag written into every checkpoint's metadata."""
+
+DEFAULT_FPS = 30.0
+"""The frame rate of a checkpoint that records none (every corpus the book ships is 30 fps)."""
 
 _META_KEY = "minimdm"  # safetensors header key holding the metadata JSON
 _DEFAULT_STEM = "model"  # file stem used when a folder is given
@@ -364,6 +368,18 @@ class Checkpoint:
     @property
     def normalizer(self) -> dict | None:
         return self.metadata.get("normalizer")
+
+    @property
+    def fps(self) -> float:
+        """The frame rate of the motion it learnt: its config's, else its feature layout's."""
+        layout = self.feature_layout if isinstance(self.feature_layout, dict) else {}
+        return float(self.config.get("fps") or layout.get("fps") or DEFAULT_FPS)
+
+    @property
+    def diffusion(self) -> dict:
+        """A denoiser's sampler settings as stored: ``schedule``, ``T``, ``predicts`` and
+        ``clip_x0`` (the clamp it was trained with); empty for the other kinds."""
+        return dict(self.metadata.get("diffusion") or {})
 
     def schedule(self, device: torch.device | str = "cpu"):
         """The :class:`~minimdm.diffusion.NoiseSchedule` the denoiser was trained with."""

@@ -334,15 +334,13 @@ def _cmd_sample(args: argparse.Namespace) -> int:
                 features=feats[0] if squeeze else feats,
                 parents=np.asarray(skeleton.parents),
                 joint_names=np.asarray(skeleton.names),
-                fps=np.asarray(ckpt.config.get("fps", 30.0)),
+                fps=np.asarray(ckpt.fps),
             )
     elif out.suffix.lower() == ".bvh":
         for k in range(args.samples):
             path = out if args.samples == 1 else out.with_name(f"{out.stem}_{k}{out.suffix}")
             sp = features.StartPose(state.start_pose.xy, state.start_pose.heading)
-            clip = features.decode_clip(
-                torch.as_tensor(feats[k]), sp, skeleton, fps=ckpt.config.get("fps", 30.0)
-            )
+            clip = features.decode_clip(torch.as_tensor(feats[k]), sp, skeleton, fps=ckpt.fps)
             bvh.save_bvh(path, clip)
     else:
         labels = [f"sample {k}" for k in range(args.samples)]

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from minimdm.amdm.sampling import rollout
-from minimdm.checkpoint import Checkpoint
+from minimdm.checkpoint import DEFAULT_FPS, Checkpoint
 from minimdm.motion import metrics
 from minimdm.motion.corpora import load_motion
 from minimdm.motion.data import MotionDataset
@@ -152,7 +152,7 @@ def checkpoint_clips(
     data = ckpt.metadata.get("data", {}) if ckpt is not None else {}
     corpus, trained_on = cfg.get("corpus", "deepmimic"), cfg.get("split")
     loop = cfg.get("loop_frames", 150) if unrolled else None
-    fps = float(cfg.get("fps", 30.0))
+    fps = ckpt.fps if ckpt is not None else DEFAULT_FPS
     if split == "train":
         names = data.get("clips") or cfg.get("clips")
         return _motion(corpus, trained_on, fps, tuple(names) if names else None, loop)

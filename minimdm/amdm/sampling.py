@@ -31,7 +31,13 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from minimdm.amdm.models import MVAE, MLPDenoiser, MLPRegressor
-from minimdm.checkpoint import Checkpoint, check_same_model, load_checkpoint, model_spec
+from minimdm.checkpoint import (
+    DEFAULT_FPS,
+    Checkpoint,
+    check_same_model,
+    load_checkpoint,
+    model_spec,
+)
 from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, StepSettings, clip_bounds, run_chain
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
@@ -237,7 +243,7 @@ class Sampler:
         _check_kind(net, ckpt, name)
         layout = skeleton = None
         if ckpt is not None:
-            meta = ckpt.metadata.get("diffusion") or {}
+            meta = ckpt.diffusion
             if normalizer is None and ckpt.normalizer is not None:
                 normalizer = Normalizer.from_dict(ckpt.normalizer)
             if schedule is None and meta:
@@ -275,7 +281,7 @@ class Sampler:
 
     @property
     def fps(self) -> float:
-        return self.layout.fps if self.layout is not None else 30.0
+        return self.layout.fps if self.layout is not None else DEFAULT_FPS
 
     @property
     def device(self) -> torch.device:

@@ -494,16 +494,13 @@ def checkpoint_training_frames(ckpt: Checkpoint) -> Tensor:
     The clips are loaded as the training loaded them (names, fps, loop unrolling), encoded, and
     normalized with the checkpoint's own statistics.
     """
+    from minimdm.amdm.evaluation import checkpoint_clips
     from minimdm.motion import features
 
-    cfg, meta = ckpt.config, ckpt.metadata
-    names = (meta.get("data") or {}).get("clips") or cfg.get("clips")
-    corpus, split = cfg.get("corpus", "deepmimic"), cfg.get("split")
-    clips = _load_clips(corpus, split, cfg.get("fps", 30.0), names, cfg.get("loop_frames", 150))
     if ckpt.normalizer is None:
         raise ValueError(f"checkpoint {ckpt.paths.weights} records no normalizer")
     norm = features.Normalizer.from_dict(ckpt.normalizer)
-    clips = _with_mirrored(clips, bool(cfg.get("mirror", False)))
+    clips = _with_mirrored(checkpoint_clips(ckpt), bool(ckpt.config.get("mirror", False)))
     return torch.cat([norm.normalize(features.encode(c)) for c in clips])  # (N, D)
 
 
@@ -519,6 +516,6 @@ def checkpoint_clamp_share(
     exchange keeps rollouts on the data (chapter 3).
     """
     if clip_x0 == "checkpoint":
-        clip_x0 = (ckpt.metadata.get("diffusion") or {}).get("clip_x0")
+        clip_x0 = ckpt.diffusion.get("clip_x0")
     frames = checkpoint_training_frames(ckpt) if frames is None else frames
     return clamp_share(clip_x0, frames)

@@ -210,12 +210,11 @@ def _camdm_columns(layout: dict) -> dict[str, Any]:
 def _settings(ckpt: Checkpoint) -> dict[str, Any]:
     """The checkpoint's skeleton, feature layout, fps and provenance, as stored."""
     layout = ckpt.feature_layout
-    fps = (layout or {}).get("fps") or ckpt.config.get("fps")
     return {
         "feature_layout": layout,
         "feature_columns": feature_columns(layout),
         "skeleton": ckpt.skeleton,
-        "fps": float(fps) if fps is not None else None,
+        "fps": ckpt.fps,
         "checkpoint": {
             "kind": ckpt.kind,
             "name": ckpt.paths.weights.parent.name,  # the folder, not this machine's path

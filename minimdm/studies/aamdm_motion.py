@@ -98,7 +98,7 @@ def motion_comparison(
     data_poses = local_poses(torch.cat(data["y"]), len(sk))
     all_pos = torch.cat([torch.as_tensor(c.positions) for c in data["clips"]])
     foot = metrics.foot_contact_offsets(all_pos, sk.foot_indices)
-    T = int((amdm.metadata.get("diffusion") or {}).get("T", 0))
+    T = int(amdm.diffusion.get("T", 0))
     aamdm = aamdm.to(dev).eval()
     rows, rolls = [], {}
     methods: list[tuple[str, Any]] = [(f"amdm{s or T}", s) for s in amdm_steps]
