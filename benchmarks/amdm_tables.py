@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import torch
 from common import emit, hardware
 
 import minimdm
@@ -45,8 +46,10 @@ def main() -> None:
         "--only", nargs="+", choices=["table1", "table2", "memorisation", "steps", "drift"]
     )
     p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (small batches: 1)")
     p.add_argument("--save", help="also append the JSON lines to this file")
     args = p.parse_args()
+    torch.set_num_threads(args.threads)
     if args.quick:
         protocol = evaluation.Protocol(n_states=4, n_samples=10, seeds=(0,))
     else:

@@ -13,6 +13,8 @@ from minimdm.checkpoint import load_checkpoint
 from minimdm.cli import main
 from minimdm.motion import bvh, features
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
 pytest.importorskip("pybullet_data")
 
 TINY = dict(

@@ -28,6 +28,8 @@ from minimdm.checkpoint import (
 )
 from minimdm.diffusion import clamp_share, clip_bounds
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted(  # the weights; a local resumable training state is not shipped
     p.with_suffix("")

@@ -10,6 +10,8 @@ from minimdm.amdm.train import TrainConfig, train_amdm
 from minimdm.motion import corpora
 from minimdm.motion.features import encode
 
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
+
 TAKES = ["dataset-1_walk_normal_002", "dataset-1_run_sad_001"]
 
 

@@ -41,7 +41,6 @@ from minimdm.checkpoint import (
 from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, StepSettings, clip_bounds, run_chain
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
-from minimdm.utils import num_threads
 from minimdm.validate import (
     InputError,
     InputTypeError,
@@ -90,10 +89,6 @@ class Rollout:
     @property
     def n_frames(self) -> int:
         return self.features.shape[2]
-
-
-SMALL_BATCH = 256
-"""On the CPU, batches below this size roll out on one thread (see :func:`rollout`)."""
 
 
 FrameStep = Callable[[int, Tensor], Tensor]
@@ -411,8 +406,8 @@ def rollout(
             :meth:`Sampler.frame`, e.g. a :class:`minimdm.fast.FastFrame` of the same
             checkpoint: the same chain as one graph, with its own steps, eta and clamp.
 
-    On the CPU, batches smaller than ``SMALL_BATCH`` run on one thread: they are bound by
-    per-operation overhead, which more threads only increase.
+    Threads are the caller's (``torch.set_num_threads`` or :func:`minimdm.utils.num_threads`):
+    on the CPU, small batches are bound by per-operation overhead and run fastest on one.
 
     Returns:
         A :class:`Rollout` with features (C, K, F, D), positions (C, K, F, J, 3), normalized.
@@ -432,9 +427,6 @@ def rollout(
         _check_fast(fast, sampler)
     x0, start_pose = _start_states(sampler, init_states, start_pose)
     C, K = x0.shape[0], n_samples
-    # Small batches are launch-bound: extra threads only add synchronisation, and on a shared
-    # 2-core machine they made batch-1 sampling 10x slower.
-    n_threads = 1 if sampler.device.type == "cpu" and C * K < SMALL_BATCH else None
     cond = sampler.normalize(x0.to(sampler.device)).repeat_interleave(K, dim=0)  # (C K, D)
 
     def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
@@ -443,8 +435,7 @@ def rollout(
     def who(b: int) -> str:
         return f"character {b // K}, sample {b % K}"
 
-    with num_threads(n_threads):
-        normalized = autoregress(step, cond, n_frames, who=who, progress=progress)
+    normalized = autoregress(step, cond, n_frames, who=who, progress=progress)
     normalized = normalized.reshape(C, K, n_frames, -1)  # (C, K, F, D)
     feats = sampler.denormalize(normalized)
     feats = feats.clone() if feats is normalized else feats

@@ -29,6 +29,7 @@ from minimdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from minimdm.config import load_config as _load_config
 from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import encode
+from minimdm.utils import num_threads as threads
 from minimdm.validate import InputError, check_choice, check_int, check_number, check_output_dir
 
 from .env import OBSERVATIONS, LatentSteerer, ResidualSteerer, Steerer, SteeringVecEnv
@@ -382,21 +383,19 @@ def train_policy(
     config, the task, the steering, the base model's identity, training time and steps.
     """
     out = check_output_dir("out", out)
-    with RunLock(out, (metadata or {}).get("command")):  # one run per folder
-        return _train_policy(config, out, progress, num_threads, metadata, base)
+    with RunLock(out, (metadata or {}).get("command")), threads(num_threads):
+        return _train_policy(config, out, progress, metadata, base)
 
 
 def _train_policy(
     config: RLConfig,
     out: Path,
     progress: bool,
-    num_threads: int,
     metadata: dict | None,
     base: Checkpoint | None,
 ) -> RLResult:
     from stable_baselines3 import PPO
 
-    torch.set_num_threads(num_threads)
     torch.manual_seed(config.seed)
     base = load_base(config, base)
     env = build_env(config, base)
