@@ -83,11 +83,10 @@ def initial_states(
         torch.stack([s.xy for s in starts]),
         torch.stack([torch.as_tensor(s.heading) for s in starts]),
     )
-    bones = torch.stack([  # each take's own actor: the reference of Bone.Err
-        torch.as_tensor(metrics.skeleton_bone_lengths(clips[i].skeleton.offsets,
-                                                      clips[i].skeleton.parents))
-        for i in idx
-    ])  # fmt: skip
+    skeletons = [clips[i].skeleton for i in idx]  # each take's own actor: Bone.Err's reference
+    bones = torch.stack(
+        [torch.as_tensor(metrics.skeleton_bone_lengths(s.offsets, s.parents)) for s in skeletons]
+    )
     return {"y": y, "x": x, "start": start, "names": list(names), "bone_lengths": bones}
 
 
@@ -129,6 +128,37 @@ def aamdm_frame(
     return torch.cat([xz, model.decode(xz)], dim=1)  # (B, XZ + D)
 
 
+def _check_rollout(
+    model: AAMDMMotion,
+    init_y: Tensor,
+    init_x: Tensor,
+    n_frames: int,
+    fast: Callable | None,
+    eager_only: bool,
+) -> None:
+    """Refuse initial frames, frame counts or a fast step that :func:`rollout_aamdm` cannot use;
+    ``eager_only``: guidance or ``T_adm`` was asked for."""
+    if fast is not None and eager_only:
+        raise ValueError("guidance and T_adm need the eager step: pass fast=None with them")
+    if fast is not None:  # a graph exported from another model is refused
+        check_same_model("fast", fast, model, "aamdm_motion", "the AAMDM model given")
+    if init_y.dim() != 2 or init_x.dim() != 2 or init_y.shape[0] != init_x.shape[0]:
+        raise ValueError(
+            f"init_y and init_x must be (C, D) and (C, {model.config.x_dim}), got "
+            f"{tuple(init_y.shape)} and {tuple(init_x.shape)}"
+        )
+    if init_x.shape[1] != model.config.x_dim or init_y.shape[1] != model.config.y_dim:
+        raise ValueError(
+            f"init_y and init_x must have {model.config.y_dim} and {model.config.x_dim} "
+            f"columns, got {init_y.shape[1]} and {init_x.shape[1]}"
+        )
+    for name, t in (("init_y", init_y), ("init_x", init_x)):
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{name} must be finite, but it holds NaN/Inf")
+    if not isinstance(n_frames, int) or n_frames < 1:
+        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
+
+
 @torch.no_grad()
 def rollout_aamdm(
     model: AAMDMMotion,
@@ -155,25 +185,7 @@ def rollout_aamdm(
     :class:`minimdm.fast.FastFrame` of the same model (the same chain as one graph); guidance
     needs the eager step.
     """
-    if fast is not None and (guide_scale > 0 or T_adm is not None):
-        raise ValueError("guidance and T_adm need the eager step: pass fast=None with them")
-    if fast is not None:  # a graph exported from another model is refused
-        check_same_model("fast", fast, model, "aamdm_motion", "the AAMDM model given")
-    if init_y.dim() != 2 or init_x.dim() != 2 or init_y.shape[0] != init_x.shape[0]:
-        raise ValueError(
-            f"init_y and init_x must be (C, D) and (C, {model.config.x_dim}), got "
-            f"{tuple(init_y.shape)} and {tuple(init_x.shape)}"
-        )
-    if init_x.shape[1] != model.config.x_dim or init_y.shape[1] != model.config.y_dim:
-        raise ValueError(
-            f"init_y and init_x must have {model.config.y_dim} and {model.config.x_dim} "
-            f"columns, got {init_y.shape[1]} and {init_x.shape[1]}"
-        )
-    for name, t in (("init_y", init_y), ("init_x", init_x)):
-        if not torch.isfinite(t).all():
-            raise ValueError(f"{name} must be finite, but it holds NaN/Inf")
-    if not isinstance(n_frames, int) or n_frames < 1:
-        raise ValueError(f"n_frames must be an integer >= 1, got {n_frames!r}")
+    _check_rollout(model, init_y, init_x, n_frames, fast, guide_scale > 0 or T_adm is not None)
     dev = model.y_mean.device
     C, K = init_y.shape[0], n_samples
     if start_pose is None:
@@ -201,10 +213,11 @@ def rollout_aamdm(
         heading = heading + frame[:, XZ + 2]  # the yaw rate d_r
         return frame
 
-    frames = autoregress(  # (C K, F, XZ + D)
-        step, torch.cat([xz0, y0], dim=1), n_frames,
-        who=lambda b: f"character {b // K}, sample {b % K}",
-    )  # fmt: skip
+    def who(b: int) -> str:
+        """Names batch row ``b`` in an error."""
+        return f"character {b // K}, sample {b % K}"
+
+    frames = autoregress(step, torch.cat([xz0, y0], dim=1), n_frames, who=who)  # (C K, F, XZ + D)
     features = frames[..., XZ:].reshape(C, K, n_frames, -1)
     normalized = frames[..., :XZ].reshape(C, K, n_frames, -1)
     positions = None
@@ -263,13 +276,14 @@ def motion_quality(
     """
     pos = rollout.positions  # (C, K, F, J, 3)
     ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
-    m = metrics.motion_metrics(pos, skeleton.parents, skeleton.foot_indices, ref,
-                               foot_offset=foot_offset)  # fmt: skip
-    if bone_lengths is not None:
-        m["Bone.Err"] = float(np.mean([
+    feet = skeleton.foot_indices
+    m = metrics.motion_metrics(pos, skeleton.parents, feet, ref, foot_offset=foot_offset)
+    if bone_lengths is not None:  # each character against its own bones
+        errors = [
             metrics.bone_length_error(pos[c], skeleton.parents, bone_lengths[c])
             for c in range(pos.shape[0])
-        ]))  # fmt: skip
+        ]
+        m["Bone.Err"] = float(np.mean(errors))
     poses = local_poses(rollout.features, pos.shape[-2])
     return {
         **{k: m[k] for k in ("APD", "FS", "Bone.Err", "Jnt.Accel")},

@@ -343,6 +343,54 @@ class Guide:
         return hook
 
 
+def _check_sample(
+    gan: nn.Module,
+    polisher: nn.Module | None,
+    T: int,
+    shape: tuple[int, int],
+    cond: Tensor | None,
+    T_gan: int,
+    T_adm: int,
+) -> tuple[int, bool]:
+    """Refuse what :func:`aamdm_sample` cannot run (its Raises); return the GAN's latent size
+    and whether the chain stops after the GAN's levels (``T_adm = 0`` with ``T_gan < T``)."""
+    _check_steps(T_gan, T_adm)
+    gan_only = T_adm == 0 and T_gan < T  # "no polishing": stop after the GAN's levels
+    if T_gan + T_adm != T and not gan_only:
+        raise ValueError(
+            f"T_gan + T_adm must equal the schedule's T = {T} (or T_adm = 0 with T_gan < T), "
+            f"got T_gan = {T_gan}, T_adm = {T_adm}"
+        )
+    if T_adm > 0 and polisher is None:
+        raise ValueError(f"T_adm = {T_adm} polishing steps need a polisher, got None")
+    B, D = shape
+    latent = getattr(getattr(gan, "config", None), "latent_dim", None)
+    if latent is None:
+        raise ValueError("gan must have config.latent_dim (a DDGANGenerator)")
+    x_dim = getattr(gan.config, "x_dim", D)
+    if x_dim != D:
+        raise ValueError(f"shape must be (B, {x_dim}) for this generator, got {tuple(shape)}")
+    if cond is not None:
+        check_finite("cond", cond)
+        if cond.shape[0] != B:
+            raise ValueError(f"cond must have batch size {B}, got shape {tuple(cond.shape)}")
+    return latent, gan_only
+
+
+def _start(
+    x_start: Tensor | None,
+    shape: tuple[int, int],
+    generator: torch.Generator | None,
+    device: torch.device,
+) -> Tensor:
+    """The chain's start (B, D): ``x_start`` checked and moved to ``device``, else N(0, I)."""
+    if x_start is None:
+        return gaussian(shape, generator, device)
+    check_finite("x_start", x_start)
+    _check_shape("x_start", x_start, shape)
+    return x_start.to(device)
+
+
 @torch.no_grad()
 def aamdm_sample(
     gan: nn.Module,
@@ -393,36 +441,13 @@ def aamdm_sample(
             kept for ``T_adm = 0``; ``T_gan < 1``; ``T_adm > 0`` without a polisher; bad shapes;
             non-finite ``cond`` or ``x_start``.
     """
-    _check_steps(T_gan, T_adm)
-    T = schedule.T
-    gan_only = T_adm == 0 and T_gan < T  # "no polishing": stop after the GAN's levels
-    if T_gan + T_adm != T and not gan_only:
-        raise ValueError(
-            f"T_gan + T_adm must equal the schedule's T = {T} (or T_adm = 0 with T_gan < T), "
-            f"got T_gan = {T_gan}, T_adm = {T_adm}"
-        )
-    if T_adm > 0 and polisher is None:
-        raise ValueError(f"T_adm = {T_adm} polishing steps need a polisher, got None")
+    latent, gan_only = _check_sample(gan, polisher, schedule.T, shape, cond, T_gan, T_adm)
     B, D = shape
-    latent = getattr(getattr(gan, "config", None), "latent_dim", None)
-    if latent is None:
-        raise ValueError("gan must have config.latent_dim (a DDGANGenerator)")
-    x_dim = getattr(gan.config, "x_dim", D)
-    if x_dim != D:
-        raise ValueError(f"shape must be (B, {x_dim}) for this generator, got {tuple(shape)}")
-    if cond is not None:
-        check_finite("cond", cond)
-        if cond.shape[0] != B:
-            raise ValueError(f"cond must have batch size {B}, got shape {tuple(cond.shape)}")
     device = cond.device if cond is not None else schedule.device
     x0_hooks = [clamp_hook(clip_x0, D, device)] if clip_x0 is not None else []
-    if x_start is not None:
-        check_finite("x_start", x_start)
-        _check_shape("x_start", x_start, (B, D))
-        x = x_start.to(device)
-    else:
-        x = gaussian((B, D), generator, device)
+    x = _start(x_start, (B, D), generator, device)  # x^{T-1}
     schedule = schedule.to(device)
+    T = schedule.T
     t_low = T - T_gan  # the first level below the GAN's
     # the GAN sees its own step index, t - T_adm
     gan_rule = DDGANStep(gan, schedule, latent, t_offset=t_low)

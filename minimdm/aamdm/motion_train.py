@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ from minimdm.aamdm.motion import (
 )
 from minimdm.aamdm.train import GANConfig, PolishConfig, train_ddgan, train_polisher
 from minimdm.checkpoint import save_checkpoint
-from minimdm.diffusion import data_range
+from minimdm.diffusion import NoiseSchedule, data_range
 from minimdm.files import RunLock
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
 from minimdm.validate import InputError, check_int, check_number, check_output_dir
@@ -128,10 +129,10 @@ class AAMDMTrainConfig:
     """The YAML file this config came from (set by load_train_config)."""
 
     def __post_init__(self) -> None:
-        sizes = ("z_dim", "ae_width", "ae_depth", "ae_steps", "ae_batch", "T_gan", "latent_dim",
-                 "width", "depth", "disc_width", "window", "polish_steps", "polish_batch",
-                 "gan_steps", "gan_batch")  # fmt: skip
-        for name in sizes:
+        autoencoder = ("z_dim", "ae_width", "ae_depth", "ae_steps", "ae_batch")
+        transition = ("T_gan", "latent_dim", "width", "depth", "disc_width", "window")
+        loops = ("polish_steps", "polish_batch", "gan_steps", "gan_batch")
+        for name in autoencoder + transition + loops:
             check_int(name, getattr(self, name), low=1)
         check_int("T_adm", self.T_adm, low=0)
         check_int("fourier", self.fourier, low=0)
@@ -213,57 +214,17 @@ def _train(
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)  # a folder: model.* inside it
     d = load_motion_data(c)
-    norm, skeleton = d["normalizer"], d["skeleton"]
-    x_all = torch.cat(d["x"])
-    x_mean, x_std = x_all.mean(0), x_all.std(0).clamp_min(1e-3)
-    ys = [norm.normalize(y) for y in d["y"]]
-    xs = [(x - x_mean) / x_std for x in d["x"]]
-    xz_dim = X_DIM + c.z_dim
-    tcfg = AAMDMConfig(
-        xz_dim, xz_dim, c.T_gan, c.T_adm, latent_dim=c.latent_dim, width=c.width,
-        depth=c.depth, fourier=c.fourier, clip_x0=None if c.clip_x0 == "data" else c.clip_x0,
-    )  # fmt: skip
-    mcfg = MotionModelConfig(
-        norm.dim, X_DIM, c.z_dim, c.ae_width, c.ae_depth, list(c.horizons), asdict(tcfg)
-    )
-    torch.manual_seed(c.seed)
-    model = AAMDMMotion(mcfg)
-    model.y_mean.copy_(norm.mean)
-    model.y_std.copy_(norm.std)
-    model.x_mean.copy_(x_mean)
-    model.x_std.copy_(x_std)
+    model, ys, xs = _new_model(c, d)
     report: dict[str, Any] = {"frames": int(sum(len(y) for y in ys))}
 
     # 1. the autoencoder, on pairs of consecutive frames (eqs. 1-4)
-    y_pairs, x_pairs = _pairs(ys), _pairs(xs)
-    ae = model.autoencoder
-    opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
-    g = torch.Generator().manual_seed(c.seed)
     t0 = time.perf_counter()
-    for step in range(c.ae_steps):
-        set_lr(opt, cosine_lr(step, c.ae_steps, c.ae_lr, c.ae_lr / 20))
-        idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
-        loss, info = autoencoder_loss(
-            ae, y_pairs[idx], x_pairs[idx], norm.denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
-        )
-        optimizer_step(opt, loss, list(ae.parameters()), grad_clip=1.0)
-        if (step + 1) % 500 == 0:
-            log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
+    info = _train_autoencoder(model, ys, xs, d, c, log)
     report["autoencoder_s"] = time.perf_counter() - t0
     report["autoencoder"] = _round(info)
-    ae.eval()
 
     # 2. the embedded vectors xz of every frame, standardised
-    with torch.no_grad():
-        xz_raw = [torch.cat([x, ae.encode(y)], dim=-1) for x, y in zip(xs, ys, strict=True)]
-    cat = torch.cat(xz_raw)
-    model.xz_mean.copy_(cat.mean(0))
-    model.xz_std.copy_(cat.std(0).clamp_min(1e-3))
-    xz = [(a - model.xz_mean) / model.xz_std for a in xz_raw]
-    if c.clip_x0 == "data":  # the sampler's clamp: the range of the standardised training xz
-        lo, hi = data_range(xz)
-        model.transition.config.clip_x0 = [lo.tolist(), hi.tolist()]
-        model.config.transition["clip_x0"] = model.transition.config.clip_x0
+    xz = _embed(model, ys, xs, c)
     windows = make_windows(xz, c.window)  # (W, h + 1, X + Z)
     report["windows"] = int(windows.shape[0])
 
@@ -278,47 +239,170 @@ def _train(
     log(f"polisher: {json.dumps(report['polisher'])} in {report['polisher_s']:.0f} s", flush=True)
 
     # 4. the DD-GAN, conditioned on the polisher's rollouts (lines 19-25)
-    disc = DDGANDiscriminator(
-        DiscriminatorConfig(xz_dim, xz_dim, c.disc_width, 3, 64, fourier=c.fourier)
-    )
-    gcfg = GANConfig(
-        c.gan_steps, c.gan_batch, c.lr_g, c.lr_d, r1_gamma=c.r1_gamma, seed=c.seed,
-        ckpt_interval=1000,
-    )  # fmt: skip
-    meta = {
-        "config": asdict(c),
-        "config_file": c.config_file,
-        "command": command or f"python -m minimdm.aamdm train {c.config_file}",
-        "feature_layout": d["layout"],
-        "skeleton": skeleton,
-        "normalizer": norm,
-        "data": {
-            "corpus": c.corpus,
-            "split": c.split,
-            "clips": d["clips"].names,
-            "fps": c.fps,
-            "windows": int(windows.shape[0]),
-        },  # fmt: skip
-    }
-
-    def tick(step: int, rec: dict) -> None:
-        if step % 500 == 0:
-            keep = ("loss_d", "loss_g", "d_real", "d_fake")
-            log(f"dd-gan {step}/{c.gan_steps}: {json.dumps(_round(rec, keep))}", flush=True)
-
+    meta = _metadata(c, d, command, windows)
     t0 = time.perf_counter()
-    gan_hist = train_ddgan(
-        tr.generator, disc, sch, windows, c.T_gan, gcfg, polisher=tr.polisher,
-        checkpoint=out_dir, bundle=model, metadata=meta, resume=False, callback=tick,
-    )  # fmt: skip
+    gan_hist = _train_gan(model, sch, windows, c, out_dir, meta, log)
     report["gan_s"] = time.perf_counter() - t0
-    report["gan"] = _round(gan_hist[-1], ("loss_d", "loss_g", "d_real", "d_fake"))
+    report["gan"] = _round(gan_hist[-1], _GAN_KEYS)
     report["total_s"] = time.perf_counter() - t_all
     model.eval()
     if out_dir is not None:
         meta.update(step=c.gan_steps, report=report)
         save_checkpoint(out_dir, model, meta)
     return model, report
+
+
+_GAN_KEYS = ("loss_d", "loss_g", "d_real", "d_fake")
+"""The DD-GAN record's entries that the log and the report keep."""
+
+
+def _new_model(
+    c: AAMDMTrainConfig, d: dict[str, Any]
+) -> tuple[AAMDMMotion, list[Tensor], list[Tensor]]:
+    """The untrained model, seeded, holding the statistics of ``y`` and ``x`` of the data ``d``;
+    and the standardised ``y`` and ``x`` of every clip."""
+    norm = d["normalizer"]
+    x_all = torch.cat(d["x"])
+    x_mean, x_std = x_all.mean(0), x_all.std(0).clamp_min(1e-3)
+    ys = [norm.normalize(y) for y in d["y"]]
+    xs = [(x - x_mean) / x_std for x in d["x"]]
+    xz_dim = X_DIM + c.z_dim
+    clip_x0 = None if c.clip_x0 == "data" else c.clip_x0  # 'data' is set once xz is known
+    tcfg = AAMDMConfig(
+        xz_dim,
+        xz_dim,
+        c.T_gan,
+        c.T_adm,
+        latent_dim=c.latent_dim,
+        width=c.width,
+        depth=c.depth,
+        fourier=c.fourier,
+        clip_x0=clip_x0,
+    )
+    mcfg = MotionModelConfig(
+        norm.dim, X_DIM, c.z_dim, c.ae_width, c.ae_depth, list(c.horizons), asdict(tcfg)
+    )
+    torch.manual_seed(c.seed)
+    model = AAMDMMotion(mcfg)
+    model.y_mean.copy_(norm.mean)
+    model.y_std.copy_(norm.std)
+    model.x_mean.copy_(x_mean)
+    model.x_std.copy_(x_std)
+    return model, ys, xs
+
+
+def _train_autoencoder(
+    model: AAMDMMotion,
+    ys: list[Tensor],
+    xs: list[Tensor],
+    d: dict[str, Any],
+    c: AAMDMTrainConfig,
+    log: Callable[..., None],
+) -> dict[str, float]:
+    """Fit the autoencoder on pairs of consecutive frames (eqs. 1-4); its last step's losses."""
+    y_pairs, x_pairs = _pairs(ys), _pairs(xs)
+    ae = model.autoencoder
+    opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
+    g = torch.Generator().manual_seed(c.seed)
+    denormalize, skeleton = d["normalizer"].denormalize, d["skeleton"]
+    for step in range(c.ae_steps):
+        set_lr(opt, cosine_lr(step, c.ae_steps, c.ae_lr, c.ae_lr / 20))
+        idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
+        loss, info = autoencoder_loss(
+            ae, y_pairs[idx], x_pairs[idx], denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
+        )
+        optimizer_step(opt, loss, list(ae.parameters()), grad_clip=1.0)
+        if (step + 1) % 500 == 0:
+            log(f"autoencoder {step + 1}/{c.ae_steps}: {json.dumps(_round(info))}", flush=True)
+    ae.eval()
+    return info
+
+
+@torch.no_grad()
+def _embed(
+    model: AAMDMMotion, ys: list[Tensor], xs: list[Tensor], c: AAMDMTrainConfig
+) -> list[Tensor]:
+    """The standardised xz of every clip; stores their statistics in ``model``, and with
+    ``clip_x0 = 'data'`` their range as the sampler's clamp."""
+    xz_raw = [
+        torch.cat([x, model.autoencoder.encode(y)], dim=-1) for x, y in zip(xs, ys, strict=True)
+    ]
+    cat = torch.cat(xz_raw)
+    model.xz_mean.copy_(cat.mean(0))
+    model.xz_std.copy_(cat.std(0).clamp_min(1e-3))
+    xz = [(a - model.xz_mean) / model.xz_std for a in xz_raw]
+    if c.clip_x0 == "data":  # the sampler's clamp: the range of the standardised training xz
+        lo, hi = data_range(xz)
+        model.transition.config.clip_x0 = [lo.tolist(), hi.tolist()]
+        model.config.transition["clip_x0"] = model.transition.config.clip_x0
+    return xz
+
+
+def _metadata(
+    c: AAMDMTrainConfig, d: dict[str, Any], command: str | None, windows: Tensor
+) -> dict[str, Any]:
+    """The checkpoint's metadata: the config, the command, the layout and the data."""
+    return {
+        "config": asdict(c),
+        "config_file": c.config_file,
+        "command": command or f"python -m minimdm.aamdm train {c.config_file}",
+        "feature_layout": d["layout"],
+        "skeleton": d["skeleton"],
+        "normalizer": d["normalizer"],
+        "data": {
+            "corpus": c.corpus,
+            "split": c.split,
+            "clips": d["clips"].names,
+            "fps": c.fps,
+            "windows": int(windows.shape[0]),
+        },
+    }
+
+
+def _train_gan(
+    model: AAMDMMotion,
+    schedule: NoiseSchedule,
+    windows: Tensor,
+    c: AAMDMTrainConfig,
+    out_dir: Path | None,
+    meta: dict[str, Any],
+    log: Callable[..., None],
+) -> list[dict]:
+    """The DD-GAN on the windows, conditioned on the polisher's rollouts (lines 19-25),
+    checkpointed into ``out_dir`` every 1000 steps; its history."""
+    xz_dim = X_DIM + c.z_dim
+    disc = DDGANDiscriminator(
+        DiscriminatorConfig(xz_dim, xz_dim, c.disc_width, 3, 64, fourier=c.fourier)
+    )
+    gcfg = GANConfig(
+        c.gan_steps,
+        c.gan_batch,
+        c.lr_g,
+        c.lr_d,
+        r1_gamma=c.r1_gamma,
+        seed=c.seed,
+        ckpt_interval=1000,
+    )
+
+    def tick(step: int, rec: dict) -> None:
+        if step % 500 == 0:
+            log(f"dd-gan {step}/{c.gan_steps}: {json.dumps(_round(rec, _GAN_KEYS))}", flush=True)
+
+    tr = model.transition
+    return train_ddgan(
+        tr.generator,
+        disc,
+        schedule,
+        windows,
+        c.T_gan,
+        gcfg,
+        polisher=tr.polisher,
+        checkpoint=out_dir,
+        bundle=model,
+        metadata=meta,
+        resume=False,
+        callback=tick,
+    )
 
 
 @torch.no_grad()

@@ -401,6 +401,145 @@ def generator_loss(
     return nn.functional.softplus(-disc(x_prev_fake, x_t, cond, k)).mean()
 
 
+@dataclass
+class _GANRun:
+    """What a DD-GAN run carries from step to step, and what its checkpoints save."""
+
+    opt_g: torch.optim.Optimizer
+    """The generator's optimizer."""
+    opt_d: torch.optim.Optimizer
+    """The discriminator's optimizer."""
+    gen: torch.Generator
+    """The one source of randomness: batches, levels, latents and noise."""
+    ema: dict[str, Tensor]
+    """The averaged generator weights (what sampling and checkpoints use)."""
+    step: int = 0
+    """Steps done (the step a resumed run continues from)."""
+    last_good: int | None = None
+    """The step of the last checkpoint written (None: none yet)."""
+
+
+def _check_ddgan_run(
+    windows: Tensor,
+    schedule: NoiseSchedule,
+    T_gan: int,
+    T_adm: int | None,
+    config: GANConfig,
+    polisher: nn.Module | None,
+) -> int:
+    """Refuse a run whose levels or pairs cannot work; return ``T_adm`` (default ``T - T_gan``)."""
+    _check_windows(windows)
+    if not 1 <= T_gan <= schedule.T:
+        raise ValueError(f"T_gan must lie in [1, T={schedule.T}], got {T_gan}")
+    T_adm = schedule.T - T_gan if T_adm is None else T_adm
+    if T_gan + T_adm != schedule.T:
+        raise ValueError(
+            f"T_gan + T_adm must equal the schedule's T = {schedule.T}, got {T_gan} + {T_adm}"
+        )
+    if config.pairs == "paper" and T_adm > 0 and polisher is None:
+        raise ValueError(
+            "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
+            f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
+        )
+    return T_adm
+
+
+def _run_lock(checkpoint: str | Path | None) -> contextlib.AbstractContextManager:
+    """The run lock of the checkpoint's folder (:class:`~minimdm.files.RunLock`), or none."""
+    if checkpoint is None:
+        return contextlib.nullcontext()
+    return RunLock(checkpoint_paths(checkpoint).weights.parent)
+
+
+def _start_ddgan(
+    gan: DDGANGenerator,
+    disc: DDGANDiscriminator,
+    config: GANConfig,
+    device: torch.device,
+    bundle: nn.Module,
+    checkpoint: str | Path | None,
+) -> _GANRun:
+    """Optimizers (betas 0.5 / 0.9, as DD-GAN), the seeded generator and the average; with a
+    ``checkpoint`` that holds a training state, all of them (and the networks) restored from it.
+    Both networks are left in training mode."""
+    run = _GANRun(
+        opt_g=_optimizer(config.optimizer, gan.parameters(), config.lr_g, (0.5, 0.9)),
+        opt_d=_optimizer(config.optimizer, disc.parameters(), config.lr_d, (0.5, 0.9)),
+        gen=torch.Generator(device).manual_seed(config.seed),
+        ema={k: v.detach().clone() for k, v in gan.state_dict().items()},
+    )
+    gan.train()
+    disc.train()
+    if checkpoint is None or not checkpoint_paths(checkpoint).train.exists():
+        return run
+    _, state = load_train_state(checkpoint)
+    bundle.load_state_dict(state["bundle"])
+    gan.load_state_dict(state["gan_raw"])
+    run.ema = {k: v.to(device) for k, v in state["gan_ema"].items()}
+    disc.load_state_dict(state["disc"])
+    run.opt_g.load_state_dict(state["opt_g"])
+    run.opt_d.load_state_dict(state["opt_d"])
+    run.gen.set_state(state["generator"].to(torch.uint8))
+    run.step = run.last_good = int(state["step"])
+    return run
+
+
+def _save_ddgan(
+    checkpoint: str | Path,
+    bundle: nn.Module,
+    gan: DDGANGenerator,
+    disc: DDGANDiscriminator,
+    run: _GANRun,
+    metadata: dict | None,
+    config: GANConfig,
+) -> None:
+    """Write ``bundle`` with the averaged generator and the training state to resume from; the
+    run's last good checkpoint is now this one."""
+    raw = {k: v.detach().clone() for k, v in gan.state_dict().items()}
+    gan.load_state_dict(run.ema)  # the checkpoint samples with the averaged generator
+    state = {
+        "step": run.step,
+        "bundle": bundle.state_dict(),
+        "gan_raw": raw,
+        "gan_ema": run.ema,
+        "disc": disc.state_dict(),
+        "opt_g": run.opt_g.state_dict(),
+        "opt_d": run.opt_d.state_dict(),
+        "generator": run.gen.get_state(),
+    }
+    meta = {**(metadata or {}), "step": run.step, "gan_config": asdict(config)}
+    try:
+        save_checkpoint(checkpoint, bundle, meta, optimizer_state=state)
+    finally:
+        gan.load_state_dict(raw)
+    run.last_good = run.step
+
+
+def _checkpoint_due(step: int, config: GANConfig) -> bool:
+    """A checkpoint at the end and every ``config.ckpt_interval`` steps (if not 0)."""
+    return step == config.steps or bool(config.ckpt_interval and step % config.ckpt_interval == 0)
+
+
+def _diverged(
+    step: int,
+    loss_d: Tensor,
+    loss_g: Tensor,
+    checkpoint: str | Path | None,
+    last_good: int | None,
+) -> GANDivergedError:
+    """The error for a non-finite loss at ``step``, naming the last good checkpoint."""
+    where = (
+        f"the last good checkpoint (step {last_good}) is kept at "
+        f"{checkpoint_paths(checkpoint).weights}"
+        if checkpoint is not None and last_good is not None
+        else "no checkpoint was written (pass checkpoint= to keep one)"
+    )
+    return GANDivergedError(
+        f"DD-GAN training diverged at step {step}: loss_D = {loss_d.item()}, "
+        f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
+    )
+
+
 def train_ddgan(
     gan: DDGANGenerator,
     disc: DDGANDiscriminator,
@@ -441,103 +580,41 @@ def train_ddgan(
     Returns one record per step (losses, discriminator outputs, seconds).
     """
     config = config or GANConfig()
-    _check_windows(windows)
-    if not 1 <= T_gan <= schedule.T:
-        raise ValueError(f"T_gan must lie in [1, T={schedule.T}], got {T_gan}")
-    T_adm = schedule.T - T_gan if T_adm is None else T_adm
-    if T_gan + T_adm != schedule.T:
-        raise ValueError(
-            f"T_gan + T_adm must equal the schedule's T = {schedule.T}, got {T_gan} + {T_adm}"
-        )
-    if config.pairs == "paper" and T_adm > 0 and polisher is None:
-        raise ValueError(
-            "GANConfig.pairs='paper' diffuses the polisher's output (Algorithm 1 line 20): pass "
-            f"polisher= (trained, T_adm = {T_adm}), or use pairs='ddgan'"
-        )
-    folder = checkpoint_paths(checkpoint).weights.parent if checkpoint is not None else None
-    with RunLock(folder) if folder is not None else contextlib.nullcontext():  # one run
+    T_adm = _check_ddgan_run(windows, schedule, T_gan, T_adm, config, polisher)
+    with _run_lock(checkpoint):  # one run per checkpoint folder
         device = next(gan.parameters()).device
         windows, schedule = windows.to(device), schedule.to(device)
-        gen = torch.Generator(device).manual_seed(config.seed)
-        opt_g = _optimizer(config.optimizer, gan.parameters(), config.lr_g, (0.5, 0.9))
-        opt_d = _optimizer(config.optimizer, disc.parameters(), config.lr_d, (0.5, 0.9))
         bundle = bundle if bundle is not None else gan
-        step, last_good = 0, None
-        ema = {k: v.detach().clone() for k, v in gan.state_dict().items()}
-        if checkpoint is not None and resume and checkpoint_paths(checkpoint).train.exists():
-            _, state = load_train_state(checkpoint)
-            bundle.load_state_dict(state["bundle"])
-            gan.load_state_dict(state["gan_raw"])
-            ema = {k: v.to(device) for k, v in state["gan_ema"].items()}
-            disc.load_state_dict(state["disc"])
-            opt_g.load_state_dict(state["opt_g"])
-            opt_d.load_state_dict(state["opt_d"])
-            gen.set_state(state["generator"].to(torch.uint8))
-            step = last_good = int(state["step"])
-
-        def save(at: int) -> None:
-            raw = {k: v.detach().clone() for k, v in gan.state_dict().items()}
-            gan.load_state_dict(ema)  # the checkpoint samples with the averaged generator
-            state = {
-                "step": at,
-                "bundle": bundle.state_dict(),
-                "gan_raw": raw,
-                "gan_ema": ema,
-                "disc": disc.state_dict(),
-                "opt_g": opt_g.state_dict(),
-                "opt_d": opt_d.state_dict(),
-                "generator": gen.get_state(),
-            }
-            meta = {**(metadata or {}), "step": at, "gan_config": asdict(config)}
-            try:
-                save_checkpoint(checkpoint, bundle, meta, optimizer_state=state)
-            finally:
-                gan.load_state_dict(raw)
-
+        run = _start_ddgan(gan, disc, config, device, bundle, checkpoint if resume else None)
         history: list[dict] = []
-        gan.train()
-        disc.train()
         t0 = time.perf_counter()
-        while step < config.steps:
-            for opt, lr in ((opt_g, config.lr_g), (opt_d, config.lr_d)):
-                set_lr(opt, cosine_lr(step, config.steps, lr, lr * config.lr_end))
-            w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
-            p = draw_gan_pairs(gan, schedule, w, T_gan, gen, config.pairs, polisher, T_adm)
-            k, cond, x_t = p.k, p.cond, p.x_t
-            x_prev_real, x_prev_fake = p.x_prev_real, p.x_prev_fake
-            loss_d, info = discriminator_loss(
-                disc, x_prev_real, x_prev_fake, x_t, cond, k, config.r1_gamma
+        while run.step < config.steps:
+            for opt, lr in ((run.opt_g, config.lr_g), (run.opt_d, config.lr_d)):
+                set_lr(opt, cosine_lr(run.step, config.steps, lr, lr * config.lr_end))
+            w = windows[_levels(config.batch_size, 0, windows.shape[0], run.gen, device)]
+            p = draw_gan_pairs(gan, schedule, w, T_gan, run.gen, config.pairs, polisher, T_adm)
+            loss_d, info = discriminator_loss(  # eq. 12
+                disc, p.x_prev_real, p.x_prev_fake, p.x_t, p.cond, p.k, config.r1_gamma
             )
+            loss_g = torch.full((), float("nan"))
             if torch.isfinite(loss_d):  # alternate: step D, then G against the updated D
-                optimizer_step(opt_d, loss_d, list(disc.parameters()), config.grad_clip)
-                loss_g = generator_loss(disc, x_prev_fake, x_t, cond, k)
-            else:
-                loss_g = torch.full((), float("nan"))
+                optimizer_step(run.opt_d, loss_d, list(disc.parameters()), config.grad_clip)
+                loss_g = generator_loss(disc, p.x_prev_fake, p.x_t, p.cond, p.k)  # eq. 11
             info["loss_g"] = loss_g.item()
             if not (torch.isfinite(loss_d) and torch.isfinite(loss_g)):
-                where = (
-                    f"the last good checkpoint (step {last_good}) is kept at "
-                    f"{checkpoint_paths(checkpoint).weights}"
-                    if checkpoint is not None and last_good is not None
-                    else "no checkpoint was written (pass checkpoint= to keep one)"
-                )
-                raise GANDivergedError(
-                    f"DD-GAN training diverged at step {step + 1}: loss_D = {loss_d.item()}, "
-                    f"loss_G = {loss_g.item()}; {where}. Lower lr_g / lr_d or raise r1_gamma."
-                )
-            optimizer_step(opt_g, loss_g, list(gan.parameters()), config.grad_clip, only_these=True)
-            ema_update(ema, gan, config.ema_decay, step)
-            step += 1
-            record = {"step": step, **info, "seconds": time.perf_counter() - t0}
+                raise _diverged(run.step + 1, loss_d, loss_g, checkpoint, run.last_good)
+            optimizer_step(
+                run.opt_g, loss_g, list(gan.parameters()), config.grad_clip, only_these=True
+            )
+            ema_update(run.ema, gan, config.ema_decay, run.step)
+            run.step += 1
+            record = {"step": run.step, **info, "seconds": time.perf_counter() - t0}
             history.append(record)
-            if checkpoint is not None and (
-                step == config.steps or (config.ckpt_interval and step % config.ckpt_interval == 0)
-            ):
-                save(step)
-                last_good = step
+            if checkpoint is not None and _checkpoint_due(run.step, config):
+                _save_ddgan(checkpoint, bundle, gan, disc, run, metadata, config)
             if callback is not None:
-                callback(step, {**record, "ema": ema})
-        gan.load_state_dict(ema)
+                callback(run.step, {**record, "ema": run.ema})
+        gan.load_state_dict(run.ema)
         gan.eval()
         disc.eval()
         return history

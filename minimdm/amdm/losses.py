@@ -171,10 +171,10 @@ def frame_loss(
             def x0_loss(x0_hat: Tensor, t: Tensor) -> Tensor:
                 return geometry(x0_hat, cond, x, ac.to(x0_hat.device)[t])
 
+        loss_kw = dict(norm=norm, x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor)
         return diffusion_loss(
-            model, schedule, x, cond, generator, predicts, reduce=False, norm=norm,
-            x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor,
-        )  # fmt: skip
+            model, schedule, x, cond, generator, predicts, reduce=False, **loss_kw
+        )
     if kind == "mse":
         pred = model(cond)
         return ((pred - x) ** 2).mean(1), pred
@@ -205,11 +205,12 @@ def window_loss(
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
-    Frame 0 of each window is the ground-truth start. Frame ``f >= 1`` is predicted from the
-    condition ``c_f``: ``c_1 = x_0``; for ``f > 1`` each sample takes its own previous
-    prediction ``\\hat x_{f-1}`` (detached) with probability ``p_student``, else the ground truth
-    ``x_{f-1}``; a fed-back prediction is clamped to ``clip_x0``: None, a float ``c``
-    (``[-c, c]``) or a per-feature range ``(lo, hi)`` (:func:`~minimdm.diffusion.clip_bounds`).
+    Frame 0 of each window is the ground-truth start. Frame ``f >= 1`` costs the loss of eq. 3
+    (:func:`frame_loss`) given the condition ``c_f``: ``c_1 = x_0``; for ``f > 1`` each sample
+    takes its own previous prediction ``\\hat x_{f-1}`` (detached) with probability
+    ``p_student``, else the ground truth ``x_{f-1}``; a fed-back prediction is clamped to
+    ``clip_x0``: None, a float ``c`` (``[-c, c]``) or a per-feature range ``(lo, hi)``
+    (:func:`~minimdm.diffusion.clip_bounds`).
 
     For A-MDM the prediction fed back is the reconstruction :math:`\\hat x_0` at the noise level
     drawn for the loss, as in the paper. With eps-prediction it divides by
@@ -227,54 +228,65 @@ def window_loss(
     Returns the mean loss over frames and samples, and the fraction of student conditions
     used. With ``p_student = 0`` all frames run as one batch.
     """
-    if windows.dim() != 3 or windows.shape[1] < 2:
-        raise ValueError(
-            f"windows must have shape (B, N_r + 1 >= 2, D), got {tuple(windows.shape)}"
-        )
-    B, n1, D = windows.shape
-    bounds = clip_bounds(clip_x0, D, windows.device, windows.dtype)
-    if teacher_weight < 0:
-        raise ValueError(f"teacher_weight must be >= 0, got {teacher_weight}")
-    kw = dict(
-        kind=kind,
-        schedule=schedule,
-        predicts=predicts,
-        kl_beta=kl_beta,
-        norm=norm,
-        geometry=geometry,
-        snr_gamma=snr_gamma,
-        snr_floor=snr_floor,
-    )
+    bounds = _check_window_loss(windows, clip_x0, teacher_weight)
+    B, n1, _ = windows.shape
+    model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
+    loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
 
-    def teacher_loss() -> Tensor:  # every frame from its ground-truth predecessor, one batch
-        x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
-        cond = windows[:, :-1].reshape(B * (n1 - 1), D)
-        return frame_loss(model, x, cond, generator, **kw)[0].mean()
+    def loss_of(x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
+        """Eq. 3 (or the baseline's loss) per sample of frames x after ``cond``, and the
+        prediction."""
+        return frame_loss(model, x, cond, generator, **model_kw, **loss_kw)
 
-    if p_student <= 0:
-        return teacher_loss(), {"student_frac": 0.0}
+    def draw(c: Tensor) -> Tensor:
+        """x_f ~ p(x_f | c_f): the reverse chain, as the sampler feeds the model at run time."""
+        return _draw(model, c, generator, schedule, predicts, student_steps, bounds)
+
+    if p_student <= 0:  # teacher forcing
+        return loss_of(*_teacher_forced(windows))[0].mean(), {"student_frac": 0.0}
     if student_steps and kind != "amdm":
         raise ValueError(f"student_steps needs kind='amdm', got {kind!r}")
-    cond = windows[:, 0]  # (B, D)
+    cond = windows[:, 0]  # c_1 = x_0, (B, D)
     losses, n_student = [], 0
-    for f in range(1, n1):
-        loss_f, pred = frame_loss(model, windows[:, f], cond, generator, **kw)
+    for f in range(1, n1):  # roll out over the N_r frames
+        loss_f, pred = loss_of(windows[:, f], cond)  # eq. 3 at frame f
         losses.append(loss_f)
-        if f + 1 < n1:
+        if f + 1 < n1:  # c_{f+1}: the student's own \hat x_f w.p. p_student, else x_f
             pred = pred.detach()
             coin = torch.rand(B, generator=generator, device=windows.device) < p_student  # (B,)
-            if student_steps and coin.any():  # x_f ~ p(x_f | c_f), as at run time
+            if student_steps and coin.any():
                 pred = pred.clone()
-                pred[coin] = _draw(model, cond[coin], generator, schedule, predicts, student_steps,
-                                   bounds)  # fmt: skip
+                pred[coin] = draw(cond[coin])
             pred = clamp_x0(pred, bounds)
             n_student += int(coin.sum())
             cond = torch.where(coin[:, None], pred, windows[:, f])
     frac = n_student / (B * max(n1 - 2, 1))
     loss = torch.stack(losses).mean()
-    if teacher_weight > 0:
-        loss = loss + teacher_weight * teacher_loss()
+    if teacher_weight > 0:  # the official A-MDM trainer's teacher-forced term
+        loss = loss + teacher_weight * loss_of(*_teacher_forced(windows))[0].mean()
     return loss, {"student_frac": frac}
+
+
+def _check_window_loss(windows: Tensor, clip_x0: Any, teacher_weight: float) -> Any:
+    """Refuse windows that are not (B, N_r + 1 >= 2, D) and a negative ``teacher_weight``;
+    return the clamp's bounds (:func:`~minimdm.diffusion.clip_bounds`)."""
+    if windows.dim() != 3 or windows.shape[1] < 2:
+        raise ValueError(
+            f"windows must have shape (B, N_r + 1 >= 2, D), got {tuple(windows.shape)}"
+        )
+    bounds = clip_bounds(clip_x0, windows.shape[2], windows.device, windows.dtype)
+    if teacher_weight < 0:
+        raise ValueError(f"teacher_weight must be >= 0, got {teacher_weight}")
+    return bounds
+
+
+def _teacher_forced(windows: Tensor) -> tuple[Tensor, Tensor]:
+    """Teacher forcing: every frame (B N_r, D) of windows (B, N_r + 1, D), and its ground-truth
+    predecessor as its condition (B N_r, D), as one batch."""
+    B, n1, D = windows.shape
+    x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
+    cond = windows[:, :-1].reshape(B * (n1 - 1), D)
+    return x, cond
 
 
 @torch.no_grad()

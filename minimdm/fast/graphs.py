@@ -313,8 +313,11 @@ class AAMDMFrame(FrameGraph):
         m = self.model
         t = m.transition
         XZ = m.xz_dim
-        buffers = {k: v.double().cpu().tolist() for k, v in m.named_buffers() if k.endswith(
-            ("_mean", "_std"))}  # fmt: skip
+        buffers = {
+            k: v.double().cpu().tolist()
+            for k, v in m.named_buffers()
+            if k.endswith(("_mean", "_std"))
+        }
         return {
             "sampler": {
                 "name": "aamdm",
@@ -441,14 +444,15 @@ class CAMDMPlan(FrameGraph):
     def inputs(self):
         L = self.controller.layout
         P, F, D = L.past, L.future, L.dim
-        return (
+        n_styles = len(L.styles)
+        style = f"the style's index in styles (0..{n_styles - 1})"
+        ports = (
             Port("past", (P, D), f"the last P = {P} frames, in the frame of the last one"),
-            Port("style", (), f"the style's index in styles (0..{len(L.styles) - 1})", "int64",
-                 len(L.styles)),
+            Port("style", (), style, "int64", n_styles),
             Port("trajectory", (F, 4), "the future trajectory: x, y, cos, sin per future frame"),
-        ) + (() if self.guide == "none" else (
-            Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)"),
-        ))  # fmt: skip
+        )
+        gamma = Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)")
+        return ports if self.guide == "none" else ports + (gamma,)
 
     def output(self):
         L = self.controller.layout

@@ -80,12 +80,13 @@ def metadata(graph: FrameGraph, weights: str = "fp32", batch: int | None = None)
     """The JSON metadata of ``graph``'s ONNX file (module docstring)."""
     b = "batch" if batch is None else int(batch)
     inputs = [_port(p, b) for p in graph.inputs()]
-    inputs.append({
+    noise = {
         "name": "noise",
         "shape": [b, graph.noise_dim],
         "what": "standard normal noise: one block of columns per draw of the chain, in order",
         "widths": list(graph.noise_widths),
-    })  # fmt: skip
+    }
+    inputs.append(noise)
     return {
         "format": FORMAT,
         "kind": graph.kind,
@@ -138,8 +139,9 @@ def export_onnx(
     if weights not in WEIGHTS:
         raise InputError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     if not isinstance(graph, FrameGraph):
-        raise InputTypeError(f"graph must be a FrameGraph (minimdm.fast.frame_graph), got "
-                             f"{describe(graph)}")  # fmt: skip
+        raise InputTypeError(
+            f"graph must be a FrameGraph (minimdm.fast.frame_graph), got {describe(graph)}"
+        )
     if batch is not None:  # 0 would divide by zero inside the exporter (SIGFPE)
         batch = check_int("batch", batch, low=1, high=MAX_BATCH)
     graph = graph.eval()
@@ -162,9 +164,16 @@ def export_onnx(
         torch.backends.mha.set_fastpath_enabled(False)
         try:
             torch.onnx.export(
-                graph, args, str(f), dynamo=False, input_names=names, output_names=[output],
-                dynamic_axes=axes, opset_version=OPSET, do_constant_folding=True,
-            )  # fmt: skip
+                graph,
+                args,
+                str(f),
+                dynamo=False,
+                input_names=names,
+                output_names=[output],
+                dynamic_axes=axes,
+                opset_version=OPSET,
+                do_constant_folding=True,
+            )
         finally:
             torch.backends.mha.set_fastpath_enabled(fused)
         import onnx
@@ -197,8 +206,9 @@ def _int8_weights(model):
 
     g = model.graph
     names = {i.name for i in g.initializer}
-    alias = {n.output[0]: n.input[0] for n in g.node if n.op_type == "Identity" and
-             n.input[0] in names}  # fmt: skip
+    alias = {
+        n.output[0]: n.input[0] for n in g.node if n.op_type == "Identity" and n.input[0] in names
+    }
     alias = {k: v for k, v in alias.items() if k not in {o.name for o in g.output}}
     for n in g.node:
         for k, x in enumerate(n.input):
@@ -206,10 +216,12 @@ def _int8_weights(model):
                 n.input[k] = alias[x]
     _keep_used(g, [n for n in g.node if n.op_type != "Identity" or n.output[0] not in alias])
     tensors = {i.name: numpy_helper.to_array(i) for i in g.initializer}
-    tensors.update({
+    constants = {
         n.output[0]: numpy_helper.to_array(n.attribute[0].t)
-        for n in g.node if n.op_type == "Constant" and n.attribute[0].name == "value"
-    })  # fmt: skip
+        for n in g.node
+        if n.op_type == "Constant" and n.attribute[0].name == "value"
+    }
+    tensors.update(constants)
     nodes, made = [], set()
     for n in g.node:
         attrs = {a.name: helper.get_attribute_value(a) for a in n.attribute}
@@ -418,8 +430,10 @@ class CAMDMPlanner:
     """
 
     def __init__(self, guided: FastFrame, conditional: FastFrame) -> None:
-        for name, f, guides in (("guided", guided, ("past", "style")),
-                                ("conditional", conditional, ("none",))):  # fmt: skip
+        for name, f, guides in (
+            ("guided", guided, ("past", "style")),
+            ("conditional", conditional, ("none",)),
+        ):
             if not isinstance(f, FastFrame):
                 raise InputTypeError(f"{name} must be a FastFrame, got {type(f).__name__}")
             got = (f.kind, f.metadata.get("plan", {}).get("guide"))
@@ -448,11 +462,13 @@ class CAMDMPlanner:
         """The future (B, F, D), as :class:`FastFrame` computes it on the chosen graph."""
         if bool((torch.as_tensor(gamma) == 1).all()):
             self.calls["conditional"] += 1
-            return self.conditional(past, generator, noise=noise, style=style,
-                                    trajectory=trajectory)  # fmt: skip
+            return self.conditional(
+                past, generator, noise=noise, style=style, trajectory=trajectory
+            )
         self.calls["guided"] += 1
-        return self.guided(past, generator, noise=noise, style=style, trajectory=trajectory,
-                           gamma=gamma)  # fmt: skip
+        return self.guided(
+            past, generator, noise=noise, style=style, trajectory=trajectory, gamma=gamma
+        )
 
 
 def fast_planner(

@@ -123,9 +123,15 @@ def motion_comparison(
             calls = arg or T
         else:
             r = rollout_aamdm(
-                aamdm, init["y"], init["x"], n_frames, n_samples, g, start_pose=init["start"],
+                aamdm,
+                init["y"],
+                init["x"],
+                n_frames,
+                n_samples,
+                g,
+                start_pose=init["start"],
                 T_adm=arg,
-            )  # fmt: skip
+            )
             x0 = aamdm.encode(init["y"][:1].to(dev), init["x"][:1].to(dev))
             calls = aamdm.transition.T_gan + (aamdm.transition.T_adm if arg is None else arg)
 
@@ -156,20 +162,24 @@ def dataset_quality(data: dict) -> dict[str, float]:
     poses = local_poses(torch.cat(data["y"]), len(sk))
     pos = [torch.as_tensor(c.positions, dtype=torch.float64) for c in data["clips"]]
     foot = metrics.foot_contact_offsets(torch.cat(pos), sk.foot_indices)
-    per_clip = [  # each clip against its own actor's bones
-        metrics.motion_metrics(p, sk.parents, sk.foot_indices,
-                               metrics.skeleton_bone_lengths(c.skeleton.offsets, sk.parents),
-                               foot_offset=foot)
-        for p, c in zip(pos, data["clips"], strict=True)
-    ]  # fmt: skip
+    per_clip = []
+    for p, c in zip(pos, data["clips"], strict=True):  # each clip against its own actor's bones
+        bones = metrics.skeleton_bone_lengths(c.skeleton.offsets, sk.parents)
+        per_clip.append(
+            metrics.motion_metrics(p, sk.parents, sk.foot_indices, bones, foot_offset=foot)
+        )
     n = sum(len(p) for p in pos)
     w = [len(p) / n for p in pos]
 
     def mean(key: str) -> float:
         return sum(wi * m[key] for wi, m in zip(w, per_clip, strict=True))
 
-    return {"FS": mean("FS"), "Bone.Err": mean("Bone.Err"), "Jnt.Accel": mean("Jnt.Accel"),
-            "DIV": pose_diversity(poses)}  # fmt: skip
+    return {
+        "FS": mean("FS"),
+        "Bone.Err": mean("Bone.Err"),
+        "Jnt.Accel": mean("Jnt.Accel"),
+        "DIV": pose_diversity(poses),
+    }
 
 
 def locomotion_clips(data: dict, contents: tuple[str, ...] = ("walk", "run")) -> tuple[str, ...]:
@@ -217,9 +227,16 @@ def guidance_study(
             cmd = init["start"].heading.float() + math.radians(turn)  # (C,)
             g = torch.Generator(dev).manual_seed(seed)
             r = rollout_aamdm(
-                model, init["y"], init["x"], n_frames, n_samples, g, start_pose=init["start"],
-                direction=cmd, guide_scale=scale,
-            )  # fmt: skip
+                model,
+                init["y"],
+                init["x"],
+                n_frames,
+                n_samples,
+                g,
+                start_pose=init["start"],
+                direction=cmd,
+                guide_scale=scale,
+            )
             te.append(heading_tracking_error(r, init["start"], cmd, settle))
             te_x.append(_x_direction_error(model, r, init["start"], cmd, settle))
             fd.append(pose_frechet_distance(local_poses(r.features, len(sk)), data_poses))

@@ -65,8 +65,11 @@ def read_results(
         rec = json.loads(line)
         if rec.get("table") != table:
             continue
-        cells = {k: (v["mean"], v["std"]) for k, v in rec.items() if isinstance(v, dict)
-                 and set(v) == {"mean", "std"}}  # fmt: skip
+        cells = {
+            k: (v["mean"], v["std"])
+            for k, v in rec.items()
+            if isinstance(v, dict) and set(v) == {"mean", "std"}
+        }
         order = [c for c in TABLE1_COLUMNS if c in cells]
         order += [c for c in cells if c not in TABLE1_COLUMNS]
         out[", ".join(str(rec.get(k)) for k in keys)] = {c: cells[c] for c in order}

@@ -43,8 +43,8 @@ def plot_panels(
         x = samples[key]
         plot_transitions(x_eval.cpu()[keep], x.cpu()[keep], ax=ax, s=2 if source is None else 4)
         if source is not None:
-            ax.scatter(*sq.mode_centers[source], marker="*", s=180, facecolors="none", c="none",
-                       edgecolors="k")  # fmt: skip
+            center = sq.mode_centers[source]
+            ax.scatter(*center, marker="*", s=180, facecolors="none", c="none", edgecolors="k")
         title = (titles or {}).get(key) or LABELS.get(key, str(key))
         r = by.get(key)
         if r:

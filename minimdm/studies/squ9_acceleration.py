@@ -243,9 +243,17 @@ class Squ9Study:
         c = self.config
         self._net_seed()
         cfg = AAMDMConfig(
-            2, 2, T_gan, T_adm, latent_dim=c.latent_dim, width=c.width, depth=c.depth,
-            time_dim=32, fourier=c.fourier, clip_x0=self.data_range(),
-        )  # fmt: skip
+            2,
+            2,
+            T_gan,
+            T_adm,
+            latent_dim=c.latent_dim,
+            width=c.width,
+            depth=c.depth,
+            time_dim=32,
+            fourier=c.fourier,
+            clip_x0=self.data_range(),
+        )
         return AAMDM(cfg).to(self.device)
 
     def train_polisher(self, model: AAMDM) -> float:
@@ -273,9 +281,14 @@ class Squ9Study:
         t0 = time.perf_counter()
         windows = pairs_to_windows(self.x_prev, self.x_next)
         train_ddgan(
-            model.generator, disc, model.schedule(), windows, model.T_gan, gan,
+            model.generator,
+            disc,
+            model.schedule(),
+            windows,
+            model.T_gan,
+            gan,
             polisher=model.polisher,
-        )  # fmt: skip
+        )
         self.discriminators[f"T_gan={model.T_gan}"] = disc
         return time.perf_counter() - t0
 
@@ -408,8 +421,12 @@ class Squ9Study:
             sec = time.perf_counter() - t0
             q = squ9_metrics(self.x_eval.cpu(), x.cpu(), self.squ9)
             with torch.no_grad():
-                chain = autoregress(lambda f, x, m=m, g=g, a=T_adm: m.sample(x, g, T_adm=a),
-                                    start, rollout_steps, desc="squ9 rollout")  # fmt: skip
+                chain = autoregress(
+                    lambda f, x, m=m, g=g, a=T_adm: m.sample(x, g, T_adm=a),
+                    start,
+                    rollout_steps,
+                    desc="squ9 rollout",
+                )
             ch = torch.cat([start.cpu()[:, None], chain], 1)  # (chains, steps + 1, 2)
             qr = squ9_metrics(ch[:, :-1].reshape(-1, 2), ch[:, 1:].reshape(-1, 2), self.squ9)
             samples[(T_gan, T_adm)] = x.cpu()
