@@ -160,8 +160,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.model_kind not in MODEL_KINDS:
             raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
-        for name in ("width", "depth", "T", "batch_size", "total_steps", "rollout",
-                     "log_interval", "eval_windows"):  # fmt: skip
+        counts = ("width", "depth", "T", "batch_size", "total_steps", "rollout", "log_interval")
+        for name in counts + ("eval_windows",):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.depth < 2:

@@ -132,10 +132,9 @@ def data_from_clips(
     data = bank(clips)
     windows, _ = data.batch(torch.arange(len(data)), skeleton.lateral_axis)  # (W, P + F, D)
     traj = _trajectory(windows, layout, skeleton)
-    return TrainData(
-        data, bank(test) if test else None, layout, skeleton, Normalizer.fit(windows.flatten(1)),
-        Normalizer.fit(traj.flatten(1)), [c.name for c in clips],
-    )  # fmt: skip
+    held_out = bank(test) if test else None
+    norms = Normalizer.fit(windows.flatten(1)), Normalizer.fit(traj.flatten(1))
+    return TrainData(data, held_out, layout, skeleton, *norms, [c.name for c in clips])
 
 
 def _trajectory(windows: Tensor, layout: CAMDMLayout, skeleton: Skeleton) -> Tensor:

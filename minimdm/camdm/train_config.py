@@ -114,10 +114,8 @@ class CAMDMTrainConfig:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
 
     def model_config(self, dim: int, n_styles: int) -> CAMDMConfig:
-        return CAMDMConfig(
-            dim, n_styles, self.past, self.future, self.latent, self.layers, self.heads,
-            self.ff, self.dropout, self.tokens, self.backbone,
-        )  # fmt: skip
+        sizes = (self.past, self.future, self.latent, self.layers, self.heads, self.ff)
+        return CAMDMConfig(dim, n_styles, *sizes, self.dropout, self.tokens, self.backbone)
 
 
 def load_train_config(path: str | os.PathLike) -> CAMDMTrainConfig:
