@@ -18,11 +18,9 @@ same seed gives the same frames within float rounding (tests: 1e-4). Pass it as 
 :func:`minimdm.amdm.sampling.rollout` or :func:`minimdm.aamdm.eval.rollout_aamdm`, or use
 :meth:`FastFrame.step` with :func:`~minimdm.amdm.sampling.autoregress`.
 
-Why ONNX Runtime: measured in one run of ``benchmarks/realtime.py`` on the 2-core build machine
-(one thread, batch 1, the book A-MDM), one frame took 13.4 ms eager, 7.2 ms as a frozen
-TorchScript trace, 19.4 ms under ``torch.compile`` (the chain's data-dependent input checks break
-its graph; 19.5 s to compile) and 3.5 ms in ONNX Runtime, whose file is also what a game engine
-loads. ``benchmarks/results/realtime.jsonl`` keeps the numbers.
+Why ONNX Runtime: it was the fastest engine measured for one frame at batch 1, and its file is
+also what a game engine loads (the measurements: the book's *Performance* page and
+``benchmarks/results/realtime.jsonl``).
 """
 
 from __future__ import annotations
