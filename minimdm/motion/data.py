@@ -62,18 +62,17 @@ __all__ = [
 _F64 = torch.float64
 
 # The 20 humanoid clips of pybullet_data/data/motions (the quadruped laikago_walk is left out).
-CLIP_NAMES = [
-    "backflip", "cartwheel", "crawl", "dance_a", "dance_b", "getup_facedown", "getup_faceup",
-    "jump", "kick", "punch", "roll", "run", "spin", "spinkick", "walk",
-    "walker/0walk_forward", "walker/turn_left0", "walker/turn_left1", "walker/turn_right0",
-    "walker/turn_right1",
-]  # fmt: skip
+CLIP_NAMES = (
+    "backflip cartwheel crawl dance_a dance_b getup_facedown getup_faceup "
+    "jump kick punch roll run spin spinkick walk "
+    "walker/0walk_forward walker/turn_left0 walker/turn_left1 walker/turn_right0 walker/turn_right1"
+).split()
 
 # The joints stored in a DeepMimic frame after duration (1), root position (3), root quat (4).
-_DEEPMIMIC_ORDER = [
-    "chest", "neck", "right_hip", "right_knee", "right_ankle", "right_shoulder", "right_elbow",
-    "left_hip", "left_knee", "left_ankle", "left_shoulder", "left_elbow",
-]  # fmt: skip
+_DEEPMIMIC_ORDER = (
+    "chest neck right_hip right_knee right_ankle right_shoulder right_elbow "
+    "left_hip left_knee left_ankle left_shoulder left_elbow"
+).split()
 _DEEPMIMIC_WIDTH = 44
 
 
@@ -88,6 +87,21 @@ def _check_quats(q: np.ndarray, what: str, names: Sequence[str]) -> np.ndarray:
         f, j = np.argwhere(norm[..., 0] < 1e-8)[0]
         raise ValueError(f"{what}: quaternion of joint {names[j]!r} at frame {f} has zero norm")
     return q / norm
+
+
+def _global_positions(
+    skeleton: Skeleton, root_pos: np.ndarray, local_rot: np.ndarray
+) -> np.ndarray:
+    """Global joint positions ``(F, J, 3)`` (float32) by forward kinematics, in blocks of frames
+    so that long clips keep small temporaries."""
+    if not len(root_pos):
+        return np.zeros((0, len(skeleton), 3), np.float32)
+    root = torch.from_numpy(root_pos).to(_F64)
+    rot = torch.from_numpy(local_rot).to(_F64)
+    blocks = zip(root.split(4096), rot.split(4096), strict=True)
+    return np.concatenate(
+        [forward_kinematics(skeleton, r, q)[0].numpy().astype(np.float32) for r, q in blocks]
+    )
 
 
 @dataclass(eq=False)
@@ -129,13 +143,8 @@ class Clip:
         self.local_rot = _check_quats(q, f"clip {self.name!r}", self.skeleton.names).astype(
             np.float32
         )
-        if self.positions is None:  # in blocks of frames: long clips keep small temporaries
-            root = torch.from_numpy(self.root_pos).to(_F64)
-            rot = torch.from_numpy(self.local_rot).to(_F64)
-            self.positions = np.concatenate([
-                forward_kinematics(self.skeleton, r, q)[0].numpy().astype(np.float32)
-                for r, q in zip(root.split(4096), rot.split(4096), strict=True)
-            ]) if F else np.zeros((0, J, 3), np.float32)  # fmt: skip
+        if self.positions is None:
+            self.positions = _global_positions(self.skeleton, self.root_pos, self.local_rot)
         self.positions = np.asarray(self.positions, dtype=np.float32)
         if self.positions.shape != (F, J, 3):
             raise ValueError(
