@@ -127,8 +127,8 @@ def _recorded_command(prog: str, verb: str, args: argparse.Namespace, threads: i
     import shlex
 
     command = [prog, verb, Path(args.config).as_posix()]
-    command += [f"--set {k}={v}" for k, v in sorted(_overrides(getattr(args, "set", None) or [])
-                                                     .items())]  # fmt: skip
+    overrides = sorted(_overrides(getattr(args, "set", None) or []).items())
+    command += [f"--set {k}={v}" for k, v in overrides]
     if args.out is not None:
         out = Path(args.out)
         root = _shipped_root_of(out)
@@ -392,16 +392,23 @@ def _cmd_export(args: argparse.Namespace) -> int:
     options = {}
     if args.guide is not None:
         if ckpt.kind != "camdm":
-            raise InputError(f"--guide: only a CAMDM checkpoint (kind camdm) guides, got kind "
-                             f"{ckpt.kind!r} ({args.onnx})")  # fmt: skip
+            raise InputError(
+                f"--guide: only a CAMDM checkpoint (kind camdm) guides, got kind {ckpt.kind!r} "
+                f"({args.onnx})"
+            )
         options["guide"] = args.guide
     graph = frame_graph(ckpt, steps=args.steps, eta=args.eta, **options)
     data = export_onnx(graph, out, weights=args.weights)
-    print(json.dumps({
-        "out": str(out), "kind": graph.kind, "bytes": len(data), "noise_dim": graph.noise_dim,
+    output = graph.output()
+    report = {
+        "out": str(out),
+        "kind": graph.kind,
+        "bytes": len(data),
+        "noise_dim": graph.noise_dim,
         "inputs": {p.name: list(p.shape) for p in graph.inputs()},
-        "output": {graph.output().name: list(graph.output().shape)},
-    }))  # fmt: skip
+        "output": {output.name: list(output.shape)},
+    }
+    print(json.dumps(report))
     return 0
 
 
