@@ -123,8 +123,11 @@ def _clip_problem(clip: Any) -> str | None:
     if isinstance(clip, list) and len(clip) == 2:
         lo, hi = _flat(clip[0]), _flat(clip[1])
         if lo is not None and hi is not None and len(lo) == len(hi):
-            bad = [i for i, (a, b) in enumerate(zip(lo, hi, strict=True))
-                   if not (math.isfinite(a) and math.isfinite(b) and a <= hi[i])]  # fmt: skip
+            ok = [
+                math.isfinite(a) and math.isfinite(b) and a <= b
+                for a, b in zip(lo, hi, strict=True)
+            ]
+            bad = [i for i, good in enumerate(ok) if not good]
             if not bad:
                 return None
             i = bad[0]
@@ -148,8 +151,8 @@ def metadata_problem(meta: Mapping[str, Any]) -> str | None:
     diff = meta.get("diffusion")
     if isinstance(diff, Mapping):
         T = diff.get("T")
-        if T is not None and not (isinstance(T, int) and not isinstance(T, bool)
-                                  and 1 <= T <= MAX_T):  # fmt: skip
+        T_ok = isinstance(T, int) and not isinstance(T, bool) and 1 <= T <= MAX_T
+        if T is not None and not T_ok:
             return f"diffusion.T must be an integer in [1, {MAX_T}], got {T!r}"
         if diff.get("predicts") not in (None, *PREDICTS):
             return f"diffusion.predicts must be one of {PREDICTS}, got {diff.get('predicts')!r}"

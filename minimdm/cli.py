@@ -43,6 +43,7 @@ import functools
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -126,8 +127,8 @@ def _recorded_command(prog: str, verb: str, args: argparse.Namespace, threads: i
     import shlex
 
     command = [prog, verb, Path(args.config).as_posix()]
-    command += [f"--set {k}={v}" for k, v in sorted(_overrides(getattr(args, "set", None) or [])
-                                                     .items())]  # fmt: skip
+    overrides = sorted(_overrides(getattr(args, "set", None) or []).items())
+    command += [f"--set {k}={v}" for k, v in overrides]
     if args.out is not None:
         out = Path(args.out)
         root = _shipped_root_of(out)
@@ -389,16 +390,23 @@ def _cmd_export(args: argparse.Namespace) -> int:
     options = {}
     if args.guide is not None:
         if ckpt.kind != "camdm":
-            raise InputError(f"--guide: only a CAMDM checkpoint (kind camdm) guides, got kind "
-                             f"{ckpt.kind!r} ({args.onnx})")  # fmt: skip
+            raise InputError(
+                f"--guide: only a CAMDM checkpoint (kind camdm) guides, got kind {ckpt.kind!r} "
+                f"({args.onnx})"
+            )
         options["guide"] = args.guide
     graph = frame_graph(ckpt, steps=args.steps, eta=args.eta, **options)
     data = export_onnx(graph, out, weights=args.weights)
-    print(json.dumps({
-        "out": str(out), "kind": graph.kind, "bytes": len(data), "noise_dim": graph.noise_dim,
+    output = graph.output()
+    report = {
+        "out": str(out),
+        "kind": graph.kind,
+        "bytes": len(data),
+        "noise_dim": graph.noise_dim,
         "inputs": {p.name: list(p.shape) for p in graph.inputs()},
-        "output": {graph.output().name: list(graph.output().shape)},
-    }))  # fmt: skip
+        "output": {output.name: list(output.shape)},
+    }
+    print(json.dumps(report))
     return 0
 
 
@@ -450,16 +458,11 @@ def _add_out(p: argparse.ArgumentParser, what: str = "checkpoint folder") -> Non
     )
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``minimdm`` command."""
-    p = argparse.ArgumentParser(prog="minimdm", description=__doc__.split("\n\n")[0])
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument(
-        "--debug", action="store_true", help="show the traceback of an error, not one line"
-    )
-    sub = p.add_subparsers(dest="command", required=True)
-    add = functools.partial(sub.add_parser, parents=[common])  # every command takes --debug
+_AddParser = Callable[..., argparse.ArgumentParser]
+"""``add(name, help=...)``: a new subcommand's parser, which takes ``--debug``."""
 
+
+def _add_train_parser(add: _AddParser) -> None:
     t = add("train", help="train a model from a YAML config (resumes if it can)")
     t.add_argument("config", help="a YAML file of configs/, e.g. configs/amdm.yaml")
     _add_out(t)
@@ -473,6 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(fn=_cmd_train)
 
+
+def _add_rl_parser(add: _AddParser) -> None:
     r = add("rl", help="train a steering policy with PPO (chapter 7)")
     r.add_argument("config", help="a YAML file of configs/, e.g. configs/rl_target.yaml")
     _add_out(r, "policy folder")
@@ -483,6 +488,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(fn=_cmd_rl)
 
+
+def _add_camdm_parser(add: _AddParser, common: argparse.ArgumentParser) -> None:
+    """``camdm train`` and ``camdm classifier``."""
     c = add("camdm", help="train CAMDM or its style classifier (chapter 9)")
     csub = c.add_subparsers(dest="camdm_command", required=True)
     cadd = functools.partial(csub.add_parser, parents=[common])
@@ -507,13 +515,15 @@ def build_parser() -> argparse.ArgumentParser:
             ct.add_argument("--restart", action="store_true", help="ignore a training state")
         ct.set_defaults(fn=fn)
 
+
+def _add_sample_parser(add: _AddParser) -> None:
     s = add("sample", help="roll a trained model out and save the motion")
     s.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
-    s.add_argument("--frames", type=_int_arg(1, MAX_SAMPLED_FRAMES), required=True,
-                   help="frames to generate")  # fmt: skip
+    frames = _int_arg(1, MAX_SAMPLED_FRAMES)
+    s.add_argument("--frames", type=frames, required=True, help="frames to generate")
     s.add_argument("--out", required=True, help="output .npz, .bvh, .gif or .mp4")
-    s.add_argument("--samples", type=_int_arg(1, 10_000), default=1,
-                   help="futures from the start pose")  # fmt: skip
+    samples = _int_arg(1, 10_000)
+    s.add_argument("--samples", type=samples, default=1, help="futures from the start pose")
     s.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     s.add_argument(
         "--start",
@@ -526,36 +536,47 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=_cmd_sample)
 
+
+def _add_eval_parser(add: _AddParser) -> None:
     e = add("eval", help="the Table 1 metrics of A-MDM §7.3")
     e.add_argument("--checkpoint", required=True, help="checkpoint folder or file")
     e.add_argument("--json", action="store_true", help="print one JSON object")
     e.add_argument("--states", type=_int_arg(1), default=10, help="fixed initial states")
-    e.add_argument("--samples", type=_int_arg(2, 10_000), default=50,
-                   help="samples per initial state")  # fmt: skip
-    e.add_argument("--seeds", type=_int_arg(1, 1000), default=3,
-                   help="repeated seeds (mean ± std)")  # fmt: skip
+    samples, seeds = _int_arg(2, 10_000), _int_arg(1, 1000)
+    e.add_argument("--samples", type=samples, default=50, help="samples per initial state")
+    e.add_argument("--seeds", type=seeds, default=3, help="repeated seeds (mean ± std)")
     e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
     e.set_defaults(fn=_cmd_eval)
 
+
+def _add_export_parser(add: _AddParser) -> None:
     x = add("export", help="write a checkpoint's frame as one ONNX graph, for game engines")
     x.add_argument(
-        "--onnx", required=True, metavar="CHECKPOINT",
+        "--onnx",
+        required=True,
+        metavar="CHECKPOINT",
         help="checkpoint folder, file or shipped name (kinds amdm, aamdm_motion, policy, camdm)",
-    )  # fmt: skip
+    )
     x.add_argument("--out", help="the .onnx file (default: <checkpoint name>.onnx here)")
     x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
     x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
-    x.add_argument("--guide", choices=("past", "style", "none"), default=None,
-                   help="CAMDM: what CFG drops (default past: CFG-PM; none: no guidance, "
-                   "the conditional model alone, half the arithmetic, for plans at gamma "
-                   "1)")  # fmt: skip
+    guide_help = (
+        "CAMDM: what CFG drops (default past: CFG-PM; none: no guidance, the conditional model "
+        "alone, half the arithmetic, for plans at gamma 1)"
+    )
+    x.add_argument("--guide", choices=("past", "style", "none"), default=None, help=guide_help)
     x.add_argument(
-        "--weights", choices=("fp32", "int8"), default="fp32",
+        "--weights",
+        choices=("fp32", "int8"),
+        default="fp32",
         help="int8: 8-bit block weights, a quarter of the bytes, approximate (default fp32)",
-    )  # fmt: skip
+    )
     x.set_defaults(fn=_cmd_export)
 
+
+def _add_data_parser(add: _AddParser, common: argparse.ArgumentParser) -> None:
+    """``data list`` and ``data download``."""
     d = add("data", help="list and download motion corpora")
     dsub = d.add_subparsers(dest="data_command", required=True)
     add = functools.partial(dsub.add_parser, parents=[common])
@@ -567,6 +588,24 @@ def build_parser() -> argparse.ArgumentParser:
     dd.add_argument("--url", help="fetch from this address instead (a mirror or file://)")
     dd.add_argument("--quiet", action="store_true", help="no progress bar")
     dd.set_defaults(fn=_cmd_data_download)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``minimdm`` command."""
+    p = argparse.ArgumentParser(prog="minimdm", description=__doc__.split("\n\n")[0])
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--debug", action="store_true", help="show the traceback of an error, not one line"
+    )
+    sub = p.add_subparsers(dest="command", required=True)
+    add = functools.partial(sub.add_parser, parents=[common])  # every command takes --debug
+    _add_train_parser(add)
+    _add_rl_parser(add)
+    _add_camdm_parser(add, common)
+    _add_sample_parser(add)
+    _add_eval_parser(add)
+    _add_export_parser(add)
+    _add_data_parser(add, common)
     return p
 
 

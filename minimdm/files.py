@@ -298,10 +298,8 @@ class RunLock:
                 old = _read_record(fd)
                 pid = old.get("pid")
                 if old and old.get("host") != host:
-                    raise self._refuse(
-                        old, f"; this machine cannot tell whether it still runs: delete "
-                        f"{self.path} if it does not"
-                    )  # fmt: skip
+                    why = "; this machine cannot tell whether it still runs: delete"
+                    raise self._refuse(old, f"{why} {self.path} if it does not")
                 if isinstance(pid, int) and pid != os.getpid() and _pid_alive(pid):
                     raise self._refuse(old)  # only where the file system ignores flock
                 if old:

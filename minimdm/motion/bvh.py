@@ -30,8 +30,10 @@ import os
 import re
 import stat
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -85,136 +87,195 @@ def _tokens(lines: Iterator[tuple[int, str]], src: str) -> tuple[list[tuple[str,
     return toks, -1
 
 
-def _parse_bvh(lines: Iterator[tuple[int, str]], src: str, size: int, fps: float | None):
-    """Hierarchy and motion of a BVH file's numbered lines (``size`` bytes); raises
-    :class:`BVHError` naming the line.
+class _Words:
+    """A cursor over the hierarchy's words (:func:`_tokens`); its errors name the line."""
 
-    The motion is read line by line into one array allocated once the header has said its
-    size, and that size is checked first: at most :data:`MAX_FRAMES` frames (also after
-    resampling to ``fps``), :data:`MAX_VALUES` numbers, and no more than the file's bytes can
-    hold. So memory stays a small multiple of the file, and a file that is too large is refused
-    before it is parsed."""
-    toks, motion_line = _tokens(lines, src)
-    last_line = toks[-1][1] if toks else 1
-    pos = 0
+    def __init__(self, toks: list[tuple[str, int]], src: str, motion_line: int) -> None:
+        self.toks, self.src, self.motion_line = toks, src, motion_line
+        self.last_line = toks[-1][1] if toks else 1
+        self.pos = 0
 
-    def err(expected: str, tok: tuple[str, int] | None = None) -> BVHError:
+    def peek(self) -> tuple[str, int] | None:
+        """The next word and its line, or None at the end of the hierarchy."""
+        return self.toks[self.pos] if self.pos < len(self.toks) else None
+
+    def error(self, expected: str, tok: tuple[str, int] | None = None) -> BVHError:
+        """``expected ..., got <tok>`` (or ``got end of hierarchy``), naming the line."""
         if tok is None:
-            at = motion_line if motion_line > 0 else last_line
-            return BVHError(f"{src}:{at}: expected {expected}, got end of hierarchy")
-        return BVHError(f"{src}:{tok[1]}: expected {expected}, got {tok[0]!r}")
+            at = self.motion_line if self.motion_line > 0 else self.last_line
+            return BVHError(f"{self.src}:{at}: expected {expected}, got end of hierarchy")
+        return BVHError(f"{self.src}:{tok[1]}: expected {expected}, got {tok[0]!r}")
 
-    def take(expected: str, check=None) -> tuple[str, int]:
-        nonlocal pos
-        if pos >= len(toks):
-            raise err(expected)
-        tok = toks[pos]
+    def take(self, expected: str, check: Callable[[str], bool] | None = None) -> tuple[str, int]:
+        """The next word, which must pass ``check``."""
+        tok = self.peek()
+        if tok is None:
+            raise self.error(expected)
         if check is not None and not check(tok[0]):
-            raise err(expected, tok)
-        pos += 1
+            raise self.error(expected, tok)
+        self.pos += 1
         return tok
 
-    def number(expected: str) -> float:
-        tok = take(expected)
+    def keyword(self, word: str) -> None:
+        """The next word, which must be ``word`` (any case)."""
+        self.take(word, lambda w: w.upper() == word.upper())
+
+    def number(self, expected: str) -> float:
+        """The next word as a finite number."""
+        tok = self.take(expected)
         try:
             v = float(tok[0])
         except ValueError:
-            raise err(expected, tok) from None
+            raise self.error(expected, tok) from None
         if not math.isfinite(v):
-            raise err(expected, tok)
+            raise self.error(expected, tok)
         return v
 
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[list[float]] = []
-    channels: list[list[str]] = []
 
-    def joint(parent: int, root: bool, depth: int = 0) -> None:
-        name, ln = take("a joint name", lambda w: w not in "{}")
-        if len(names) >= MAX_JOINTS or depth >= MAX_DEPTH:
-            raise BVHError(
-                f"{src}:{ln}: expected a skeleton of at most {MAX_JOINTS} joints nested at most "
-                f"{MAX_DEPTH} deep, got more"
-            )
-        if name in names:
-            raise BVHError(f"{src}:{ln}: joint name {name!r} is used twice; names must be unique")
-        j = len(names)
-        names.append(name)
-        parents.append(parent)
-        take("'{'", lambda w: w == "{")
-        take("OFFSET", lambda w: w.upper() == "OFFSET")
-        offsets.append([number("an OFFSET number") for _ in range(3)])
-        chans: list[str] = []
-        if pos < len(toks) and toks[pos][0].upper() == "CHANNELS":
-            take("CHANNELS")
-            tok = take("a channel count", lambda w: w.isdigit())
-            for _ in range(int(tok[0])):
-                c = take(
-                    "a channel name (Xposition ... Zrotation)",
-                    lambda w: w.lower() in _POS or w.lower() in _ROT,
-                )
-                chans.append(c[0].lower())
-        elif root:
-            raise err("CHANNELS", toks[pos] if pos < len(toks) else None)
-        channels.append(chans)
-        while True:
-            tok = take("JOINT, End Site or '}'")
-            key = tok[0].upper()
-            if key == "}":
-                return
-            if key == "JOINT":
-                joint(j, False, depth + 1)
-            elif key == "END":
-                take("Site", lambda w: w.upper() == "SITE")
-                take("'{'", lambda w: w == "{")
-                take("OFFSET", lambda w: w.upper() == "OFFSET")
-                [number("an OFFSET number") for _ in range(3)]  # End Sites are dropped
-                take("'}'", lambda w: w == "}")
-            else:
-                raise err("JOINT, End Site or '}'", tok)
+@dataclass
+class _Joints:
+    """The joints of a hierarchy, in file order (depth first)."""
 
-    take("HIERARCHY", lambda w: w.upper() == "HIERARCHY")
-    take("ROOT", lambda w: w.upper() == "ROOT")
-    joint(-1, True)
-    if pos < len(toks):
-        raise err("MOTION", toks[pos])
+    names: list[str] = field(default_factory=list)
+    parents: list[int] = field(default_factory=list)
+    offsets: list[list[float]] = field(default_factory=list)
+    channels: list[list[str]] = field(default_factory=list)
+    """Each joint's channel names, lower-cased (``xposition`` ... ``zrotation``)."""
+
+
+def _is_channel(word: str) -> bool:
+    return word.lower() in _POS or word.lower() in _ROT
+
+
+def _parse_channels(words: _Words, root: bool) -> list[str]:
+    """A joint's ``CHANNELS n name...`` (lower-cased); only the root must have one."""
+    tok = words.peek()
+    if tok is None or tok[0].upper() != "CHANNELS":
+        if root:
+            raise words.error("CHANNELS", tok)
+        return []
+    words.take("CHANNELS")
+    count = words.take("a channel count", lambda w: w.isdigit())
+    expected = "a channel name (Xposition ... Zrotation)"
+    return [words.take(expected, _is_channel)[0].lower() for _ in range(int(count[0]))]
+
+
+def _skip_end_site(words: _Words) -> None:
+    """An ``End Site { OFFSET x y z }`` block after its ``End``; End Sites are dropped."""
+    words.keyword("Site")
+    words.take("'{'", lambda w: w == "{")
+    words.keyword("OFFSET")
+    [words.number("an OFFSET number") for _ in range(3)]
+    words.take("'}'", lambda w: w == "}")
+
+
+def _parse_joint(words: _Words, joints: _Joints, parent: int, root: bool, depth: int = 0) -> None:
+    """A ROOT or JOINT block after its keyword, and its children, into ``joints``."""
+    name, ln = words.take("a joint name", lambda w: w not in "{}")
+    if len(joints.names) >= MAX_JOINTS or depth >= MAX_DEPTH:
+        raise BVHError(
+            f"{words.src}:{ln}: expected a skeleton of at most {MAX_JOINTS} joints nested at "
+            f"most {MAX_DEPTH} deep, got more"
+        )
+    if name in joints.names:
+        raise BVHError(f"{words.src}:{ln}: joint name {name!r} is used twice; names must be unique")
+    j = len(joints.names)
+    joints.names.append(name)
+    joints.parents.append(parent)
+    words.take("'{'", lambda w: w == "{")
+    words.keyword("OFFSET")
+    joints.offsets.append([words.number("an OFFSET number") for _ in range(3)])
+    joints.channels.append(_parse_channels(words, root))
+    while True:
+        tok = words.take("JOINT, End Site or '}'")
+        key = tok[0].upper()
+        if key == "}":
+            return
+        if key == "JOINT":
+            _parse_joint(words, joints, j, False, depth + 1)
+        elif key == "END":
+            _skip_end_site(words)
+        else:
+            raise words.error("JOINT, End Site or '}'", tok)
+
+
+def _parse_hierarchy(lines: Iterator[tuple[int, str]], src: str) -> tuple[_Joints, int]:
+    """The HIERARCHY section, up to and with the MOTION line, and its last line's number."""
+    toks, motion_line = _tokens(lines, src)
+    words = _Words(toks, src, motion_line)
+    words.keyword("HIERARCHY")
+    words.keyword("ROOT")
+    joints = _Joints()
+    _parse_joint(words, joints, -1, True)
+    if words.peek() is not None:
+        raise words.error("MOTION", words.peek())
     if motion_line < 0:
-        raise BVHError(f"{src}:{last_line}: expected MOTION, got end of file")
+        raise BVHError(f"{src}:{words.last_line}: expected MOTION, got end of file")
+    return joints, words.last_line
 
-    def header(label: str) -> tuple[int, str]:
-        ln, line = next(lines, (None, None))
-        if ln is None:
-            raise BVHError(f"{src}:{last_line + 1}: expected '{label} ...', got end of file")
-        line = line.strip()
-        if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "")):
-            raise BVHError(f"{src}:{ln}: expected '{label} ...', got {line[:80]!r}")
-        return ln, line.split(":", 1)[-1].strip()
 
-    frames_line, value = header("Frames:")
+def _header_line(
+    lines: Iterator[tuple[int, str]], src: str, last_line: int, label: str
+) -> tuple[int, str]:
+    """The next line, which must start with ``label``: its number and the text after the colon."""
+    ln, line = next(lines, (None, None))
+    if ln is None:
+        raise BVHError(f"{src}:{last_line + 1}: expected '{label} ...', got end of file")
+    line = line.strip()
+    if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "")):
+        raise BVHError(f"{src}:{ln}: expected '{label} ...', got {line[:80]!r}")
+    return ln, line.split(":", 1)[-1].strip()
+
+
+class _MotionHeader(NamedTuple):
+    """The ``Frames:`` and ``Frame Time:`` lines after MOTION: the line and value of each."""
+
+    frames_line: int
+    n_frames: int
+    time_line: int
+    frame_time: float
+    """Seconds."""
+
+
+def _parse_motion_header(
+    lines: Iterator[tuple[int, str]], src: str, last_line: int
+) -> _MotionHeader:
+    """The motion's header, on the lines after MOTION (the hierarchy ends at ``last_line``)."""
+    frames_line, value = _header_line(lines, src, last_line, "Frames:")
     try:
         n_frames = int(value)
     except ValueError:
         raise BVHError(
             f"{src}:{frames_line}: expected 'Frames: <integer>', got {value!r}"
         ) from None
-    ln, value = header("Frame Time:")
+    time_line, value = _header_line(lines, src, last_line, "Frame Time:")
     try:
         frame_time = float(value)
     except ValueError:
-        raise BVHError(f"{src}:{ln}: expected 'Frame Time: <seconds>', got {value!r}") from None
+        raise BVHError(
+            f"{src}:{time_line}: expected 'Frame Time: <seconds>', got {value!r}"
+        ) from None
     if not frame_time > 0:
-        raise BVHError(f"{src}:{ln}: expected a Frame Time > 0, got {frame_time}")
+        raise BVHError(f"{src}:{time_line}: expected a Frame Time > 0, got {frame_time}")
     if not MIN_FPS <= 1.0 / frame_time <= MAX_FPS:
         raise BVHError(
             f"{src}: Frame Time {frame_time:g} s means {1.0 / frame_time:.3g} frames per second; "
             f"expected {MIN_FPS:g} to {MAX_FPS:g} (1 / Frame Time)"
         )
-    n_chan = sum(len(c) for c in channels)
+    return _MotionHeader(frames_line, n_frames, time_line, frame_time)
+
+
+def _check_motion_size(
+    src: str, header: _MotionHeader, n_chan: int, size: int, fps: float | None
+) -> None:
+    """Refuse a motion too large to read (:func:`_parse_bvh`) before it is read."""
+    frames_line, n_frames, _, frame_time = header
     if n_frames < 1:
         raise BVHError(f"{src}:{frames_line}: expected at least one frame, got {n_frames}")
-    if n_frames > MAX_FRAMES or (
+    too_many = n_frames > MAX_FRAMES or (
         fps is not None and _n_samples((n_frames - 1) * frame_time, fps) > MAX_FRAMES
-    ):
+    )
+    if too_many:
         at = "" if fps is None else f" resampled to {fps:g} Hz"
         raise BVHError(
             f"{src}:{frames_line}: {n_frames} frames of {frame_time:g} s{at} would make more "
@@ -231,7 +292,14 @@ def _parse_bvh(lines: Iterator[tuple[int, str]], src: str, size: int, fps: float
             f"{src}:{frames_line}: expected {n_frames} frames (as line {frames_line} says) of "
             f"{n_chan} numbers, but the file's {size} bytes cannot hold them"
         )
-    first = ln + 1  # the line of the first frame
+
+
+def _read_frames(
+    lines: Iterator[tuple[int, str]], src: str, header: _MotionHeader, n_chan: int
+) -> np.ndarray:
+    """The motion ``(n_frames, n_chan)`` after its header, then nothing but blank lines."""
+    frames_line, n_frames, time_line, _ = header
+    first = time_line + 1  # the line of the first frame
     motion = np.empty((n_frames, n_chan))
     for i in range(n_frames):
         ln, line = next(lines, (None, None))
@@ -253,7 +321,25 @@ def _parse_bvh(lines: Iterator[tuple[int, str]], src: str, size: int, fps: float
     for ln, extra in lines:
         if extra.strip():
             raise BVHError(f"{src}:{ln}: expected end of file after {n_frames} frames")
-    return names, parents, np.array(offsets), channels, frame_time, motion
+    return motion
+
+
+def _parse_bvh(lines: Iterator[tuple[int, str]], src: str, size: int, fps: float | None):
+    """Hierarchy and motion of a BVH file's numbered lines (``size`` bytes); raises
+    :class:`BVHError` naming the line.
+
+    The motion is read line by line into one array allocated once the header has said its
+    size, and that size is checked first: at most :data:`MAX_FRAMES` frames (also after
+    resampling to ``fps``), :data:`MAX_VALUES` numbers, and no more than the file's bytes can
+    hold. So memory stays a small multiple of the file, and a file that is too large is refused
+    before it is parsed."""
+    joints, last_line = _parse_hierarchy(lines, src)
+    header = _parse_motion_header(lines, src, last_line)
+    n_chan = sum(len(c) for c in joints.channels)
+    _check_motion_size(src, header, n_chan, size, fps)
+    motion = _read_frames(lines, src, header, n_chan)
+    offsets = np.array(joints.offsets)
+    return joints.names, joints.parents, offsets, joints.channels, header.frame_time, motion
 
 
 def _guess_feet(names: list[str]) -> list[str]:

@@ -62,18 +62,17 @@ __all__ = [
 _F64 = torch.float64
 
 # The 20 humanoid clips of pybullet_data/data/motions (the quadruped laikago_walk is left out).
-CLIP_NAMES = [
-    "backflip", "cartwheel", "crawl", "dance_a", "dance_b", "getup_facedown", "getup_faceup",
-    "jump", "kick", "punch", "roll", "run", "spin", "spinkick", "walk",
-    "walker/0walk_forward", "walker/turn_left0", "walker/turn_left1", "walker/turn_right0",
-    "walker/turn_right1",
-]  # fmt: skip
+CLIP_NAMES = (
+    "backflip cartwheel crawl dance_a dance_b getup_facedown getup_faceup "
+    "jump kick punch roll run spin spinkick walk "
+    "walker/0walk_forward walker/turn_left0 walker/turn_left1 walker/turn_right0 walker/turn_right1"
+).split()
 
 # The joints stored in a DeepMimic frame after duration (1), root position (3), root quat (4).
-_DEEPMIMIC_ORDER = [
-    "chest", "neck", "right_hip", "right_knee", "right_ankle", "right_shoulder", "right_elbow",
-    "left_hip", "left_knee", "left_ankle", "left_shoulder", "left_elbow",
-]  # fmt: skip
+_DEEPMIMIC_ORDER = (
+    "chest neck right_hip right_knee right_ankle right_shoulder right_elbow "
+    "left_hip left_knee left_ankle left_shoulder left_elbow"
+).split()
 _DEEPMIMIC_WIDTH = 44
 
 
@@ -88,6 +87,21 @@ def _check_quats(q: np.ndarray, what: str, names: Sequence[str]) -> np.ndarray:
         f, j = np.argwhere(norm[..., 0] < 1e-8)[0]
         raise ValueError(f"{what}: quaternion of joint {names[j]!r} at frame {f} has zero norm")
     return q / norm
+
+
+def _global_positions(
+    skeleton: Skeleton, root_pos: np.ndarray, local_rot: np.ndarray
+) -> np.ndarray:
+    """Global joint positions ``(F, J, 3)`` (float32) by forward kinematics, in blocks of frames
+    so that long clips keep small temporaries."""
+    if not len(root_pos):
+        return np.zeros((0, len(skeleton), 3), np.float32)
+    root = torch.from_numpy(root_pos).to(_F64)
+    rot = torch.from_numpy(local_rot).to(_F64)
+    blocks = zip(root.split(4096), rot.split(4096), strict=True)
+    return np.concatenate(
+        [forward_kinematics(skeleton, r, q)[0].numpy().astype(np.float32) for r, q in blocks]
+    )
 
 
 @dataclass(eq=False)
@@ -129,13 +143,8 @@ class Clip:
         self.local_rot = _check_quats(q, f"clip {self.name!r}", self.skeleton.names).astype(
             np.float32
         )
-        if self.positions is None:  # in blocks of frames: long clips keep small temporaries
-            root = torch.from_numpy(self.root_pos).to(_F64)
-            rot = torch.from_numpy(self.local_rot).to(_F64)
-            self.positions = np.concatenate([
-                forward_kinematics(self.skeleton, r, q)[0].numpy().astype(np.float32)
-                for r, q in zip(root.split(4096), rot.split(4096), strict=True)
-            ]) if F else np.zeros((0, J, 3), np.float32)  # fmt: skip
+        if self.positions is None:
+            self.positions = _global_positions(self.skeleton, self.root_pos, self.local_rot)
         self.positions = np.asarray(self.positions, dtype=np.float32)
         if self.positions.shape != (F, J, 3):
             raise ValueError(
@@ -341,6 +350,107 @@ def _humanoid_joints() -> tuple[dict, ...]:
     return tuple(humanoid_urdf_joints())
 
 
+def _read_deepmimic(path: Path, what: str) -> tuple[dict, torch.Tensor]:
+    """A DeepMimic file's JSON and its frames ``(K, 44)``, each checked for its width."""
+    try:
+        data = json.loads(path.read_text())
+        frames = data["Frames"]
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{what}: expected DeepMimic JSON with a 'Frames' list ({e})") from None
+    for f, row in enumerate(frames):
+        if len(row) != _DEEPMIMIC_WIDTH:
+            raise ValueError(
+                f"{what}: frame {f} has {len(row)} numbers, expected {_DEEPMIMIC_WIDTH}"
+            )
+    if len(frames) < 1:
+        raise ValueError(f"{what}: expected at least one frame")
+    return data, torch.tensor(frames, dtype=_F64)
+
+
+def _frame_durations(a: torch.Tensor, what: str) -> torch.Tensor:
+    """The durations ``(K - 1,)`` between frames ``a (K, 44)``, checked with the root position."""
+    if not torch.isfinite(a[:, :4]).all():
+        f = int((~torch.isfinite(a[:, :4])).any(-1).nonzero()[0])
+        raise ValueError(f"{what}: frame {f} has NaN/Inf in its duration or root position")
+    dur = a[:-1, 0]
+    if (dur <= 0).any():
+        raise ValueError(f"{what}: frame {int((dur <= 0).nonzero()[0])} has a duration <= 0")
+    return dur
+
+
+def _deepmimic_rotations(
+    a: torch.Tensor, skeleton: Skeleton, urdf: dict[str, dict], what: str
+) -> torch.Tensor:
+    """Local rotations ``(K, J, 4)`` in skeleton order from frames ``a (K, 44)``, turned z-up."""
+    K, J = a.shape[0], len(skeleton)
+    q = torch.zeros(K, J, 4, dtype=_F64)
+    q[..., 0] = 1.0  # fixed joints (wrists) stay identity
+    q[:, 0] = a[:, 4:8]
+    col = 8
+    for jname in _DEEPMIMIC_ORDER:
+        j = skeleton.index(jname)
+        if urdf[jname]["type"] == "revolute":  # 1 DoF: an angle about the URDF axis
+            axis = torch.tensor(urdf[jname]["axis"], dtype=_F64)
+            q[:, j] = axis_angle_to_quat(a[:, col, None] * axis)
+            col += 1
+        else:
+            q[:, j] = a[:, col : col + 4]
+            col += 4
+    q = torch.from_numpy(_check_quats(q.numpy(), what, skeleton.names))
+
+    # y-up -> z-up: conjugate every rotation by the fixed +90 degree turn about x.
+    qm = torch.tensor([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0], dtype=_F64)
+    return quat_mul(quat_mul(qm.expand_as(q), q), quat_conjugate(qm).expand_as(q))
+
+
+def _close_cycle(
+    times: torch.Tensor, root: torch.Tensor, q: torch.Tensor, lateral_axis: Sequence[float]
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Spread a cycle's end-to-start mismatch over it (see :func:`load_deepmimic`).
+
+    Returns the closed rotations ``(K, J, 4)``, root ``(K, 3)`` and the turn ``dh`` (radians)
+    of one cycle."""
+    K, J = q.shape[:2]
+    h = heading_angle(quat_to_matrix(q[[0, -1], 0]), lateral_axis)
+    dh = float(wrap_angle(h[1] - h[0]))
+    s = (times / float(times[-1]))[:, None]  # (K, 1)
+    end = q[0].clone()  # (J, 4) where the last frame should be
+    end[0] = quat_mul(_yaw_quat(torch.tensor(dh, dtype=_F64)), q[0, 0])
+    delta = quat_mul(quat_conjugate(q[-1]), end)  # (J, 4)
+    ident = torch.zeros_like(delta)
+    ident[:, 0] = 1.0
+    q = quat_mul(q, quat_slerp(ident.expand_as(q), delta.expand_as(q), s.expand(K, J)))
+    root = root.clone()
+    root[:, 2] += (root[0, 2] - root[-1, 2]) * s[:, 0]
+    return q, root, dh
+
+
+def _unroll_cycles(
+    times: torch.Tensor, root: torch.Tensor, q: torch.Tensor, dh: float, n: int, fps: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` frames at ``fps`` of a closed cycle repeated: root ``(n, 3)``, rotations ``(n, J, 4)``.
+
+    Cycle k is sampled at local time t - k * period, then moved by T^k, the planar rigid
+    transform (translation and yaw ``dh``) from the cycle's first root to its last."""
+    period = float(times[-1])
+    t = torch.arange(n, dtype=_F64) / fps
+    k = torch.floor(t / period + 1e-9)
+    r, qs = _interpolate(times, root, q, (t - k * period).clamp(0.0, period))
+    c0, cn = root[0, :2], root[-1, :2]
+    n_cycles = int(k.max()) + 1
+    centres = [c0]
+    Rd = yaw_matrix(torch.tensor(dh, dtype=_F64))[:2, :2]
+    for _ in range(n_cycles - 1):
+        centres.append(Rd @ (centres[-1] - c0) + cn)
+    ck = torch.stack(centres)[k.long()]  # (N, 2)
+    Rk = yaw_matrix(k * dh)[:, :2, :2]  # (N, 2, 2)
+    r = r.clone()
+    r[:, :2] = (Rk @ (r[:, :2] - c0)[..., None])[..., 0] + ck
+    qs = qs.clone()
+    qs[:, 0] = quat_mul(_yaw_quat(k * dh), qs[:, 0])
+    return r, qs
+
+
 def load_deepmimic(
     path: str | Path,
     fps: float = 30.0,
@@ -367,50 +477,12 @@ def load_deepmimic(
     path = Path(path)
     name = name or path.stem.removeprefix("humanoid3d_")
     what = f"{path.name}"
-    try:
-        data = json.loads(path.read_text())
-        frames = data["Frames"]
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{what}: expected DeepMimic JSON with a 'Frames' list ({e})") from None
-    for f, row in enumerate(frames):
-        if len(row) != _DEEPMIMIC_WIDTH:
-            raise ValueError(
-                f"{what}: frame {f} has {len(row)} numbers, expected {_DEEPMIMIC_WIDTH}"
-            )
-    if len(frames) < 1:
-        raise ValueError(f"{what}: expected at least one frame")
-    a = torch.tensor(frames, dtype=_F64)  # (K, 44)
+    data, a = _read_deepmimic(path, what)  # (K, 44)
     skeleton = skeleton or humanoid_skeleton()
     urdf = {j["name"]: j for j in _humanoid_joints()}
-    K, J = a.shape[0], len(skeleton)
-    if not torch.isfinite(a[:, :4]).all():
-        f = int((~torch.isfinite(a[:, :4])).any(-1).nonzero()[0])
-        raise ValueError(f"{what}: frame {f} has NaN/Inf in its duration or root position")
-    dur = a[:-1, 0]
-    if (dur <= 0).any():
-        raise ValueError(f"{what}: frame {int((dur <= 0).nonzero()[0])} has a duration <= 0")
-
-    # Local rotations in skeleton order, source (y-up) frame.
-    q = torch.zeros(K, J, 4, dtype=_F64)
-    q[..., 0] = 1.0  # fixed joints (wrists) stay identity
-    q[:, 0] = a[:, 4:8]
-    col = 8
-    for jname in _DEEPMIMIC_ORDER:
-        j = skeleton.index(jname)
-        if urdf[jname]["type"] == "revolute":  # 1 DoF: an angle about the URDF axis
-            axis = torch.tensor(urdf[jname]["axis"], dtype=_F64)
-            q[:, j] = axis_angle_to_quat(a[:, col, None] * axis)
-            col += 1
-        else:
-            q[:, j] = a[:, col : col + 4]
-            col += 4
-    q = torch.from_numpy(_check_quats(q.numpy(), what, skeleton.names))
-
-    # y-up -> z-up: conjugate every rotation by the fixed +90 degree turn about x.
-    M = torch.tensor(Y_UP_TO_Z_UP, dtype=_F64)
-    qm = torch.tensor([math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0], dtype=_F64)
-    q = quat_mul(quat_mul(qm.expand_as(q), q), quat_conjugate(qm).expand_as(q))
-    root = a[:, 1:4] @ M.T  # (K, 3)
+    dur = _frame_durations(a, what)  # (K - 1,)
+    q = _deepmimic_rotations(a, skeleton, urdf, what)  # (K, J, 4), z-up
+    root = a[:, 1:4] @ torch.tensor(Y_UP_TO_Z_UP, dtype=_F64).T  # (K, 3)
 
     times = torch.cat([torch.zeros(1, dtype=_F64), torch.cumsum(dur, 0)])
     period = float(times[-1])
@@ -421,36 +493,8 @@ def load_deepmimic(
         return Clip(name, fps, skeleton, r.numpy(), qs.numpy(), loop=loop)
     if loop_frames < 1:
         raise ValueError(f"loop_frames must be >= 1, got {loop_frames}")
-
-    # Close the cycle: spread the end-to-start mismatch over it (see docstring).
-    h = heading_angle(quat_to_matrix(q[[0, -1], 0]), skeleton.lateral_axis)
-    dh = float(wrap_angle(h[1] - h[0]))
-    s = (times / period)[:, None]  # (K, 1)
-    end = q[0].clone()  # (J, 4) where the last frame should be
-    end[0] = quat_mul(_yaw_quat(torch.tensor(dh, dtype=_F64)), q[0, 0])
-    delta = quat_mul(quat_conjugate(q[-1]), end)  # (J, 4)
-    ident = torch.zeros_like(delta)
-    ident[:, 0] = 1.0
-    q = quat_mul(q, quat_slerp(ident.expand_as(q), delta.expand_as(q), s.expand(K, J)))
-    root = root.clone()
-    root[:, 2] += (root[0, 2] - root[-1, 2]) * s[:, 0]
-
-    # Sample cycle k at local time t - k * period, then move it by T^k.
-    t = torch.arange(loop_frames, dtype=_F64) / fps
-    k = torch.floor(t / period + 1e-9)
-    r, qs = _interpolate(times, root, q, (t - k * period).clamp(0.0, period))
-    c0, cn = root[0, :2], root[-1, :2]
-    n_cycles = int(k.max()) + 1
-    centres = [c0]
-    Rd = yaw_matrix(torch.tensor(dh, dtype=_F64))[:2, :2]
-    for _ in range(n_cycles - 1):
-        centres.append(Rd @ (centres[-1] - c0) + cn)
-    ck = torch.stack(centres)[k.long()]  # (N, 2)
-    Rk = yaw_matrix(k * dh)[:, :2, :2]  # (N, 2, 2)
-    r = r.clone()
-    r[:, :2] = (Rk @ (r[:, :2] - c0)[..., None])[..., 0] + ck
-    qs = qs.clone()
-    qs[:, 0] = quat_mul(_yaw_quat(k * dh), qs[:, 0])
+    q, root, dh = _close_cycle(times, root, q, skeleton.lateral_axis)
+    r, qs = _unroll_cycles(times, root, q, dh, loop_frames, fps)
     return Clip(name, fps, skeleton, r.numpy(), qs.numpy(), loop=True)
 
 

@@ -34,8 +34,8 @@ from .skeleton import Skeleton, matrix_to_quat, quat_to_matrix
 
 __all__ = ["joint_partners", "mirror_frames", "mirror_clip", "mirror_clips"]
 
-_SIDES = (("Left", "Right"), ("left", "right"), ("_L", "_R"), ("_l", "_r"), ("L_", "R_"),
-          ("l_", "r_"), (".L", ".R"), (".l", ".r"))  # fmt: skip
+_LEFT, _RIGHT = "Left left _L _l L_ l_ .L .l".split(), "Right right _R _r R_ r_ .R .r".split()
+_SIDES = tuple(zip(_LEFT, _RIGHT, strict=True))  # (left, right) spellings of a side
 _WORLD = np.diag([1.0, -1.0, 1.0])  # M: reflect the world's y axis
 _FLIPS = [np.diag(s) for s in itertools.product((1.0, -1.0), repeat=3) if np.prod(s) < 0]
 

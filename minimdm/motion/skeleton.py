@@ -106,12 +106,10 @@ def quat_rotate(q: Tensor, v: Tensor) -> Tensor:
 def quat_to_matrix(q: Tensor) -> Tensor:
     """Unit quaternions ``(..., 4)`` -> rotation matrices ``(..., 3, 3)``."""
     w, x, y, z = q.unbind(-1)
-    m = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return torch.stack(m, dim=-1).reshape(q.shape[:-1] + (3, 3))
+    row0 = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]
+    row1 = [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]
+    row2 = [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+    return torch.stack(row0 + row1 + row2, dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat(R: Tensor) -> Tensor:

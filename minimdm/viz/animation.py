@@ -108,6 +108,27 @@ def _frame_indices(n_frames: int, fps: float, motion_fps: float, stride: int | N
     return range(0, n_frames, int(stride))
 
 
+def _panel_rows(n: int, ncols: int | None, layout: Layout) -> list[list[int]]:
+    """The motions of each row of panels: one row, or rows of ``ncols`` side by side."""
+    if ncols is None or layout != "side_by_side" or n <= ncols:
+        return [list(range(n))]
+    return [list(range(r, min(r + ncols, n))) for r in range(0, n, ncols)]
+
+
+def _stack_rows(rows: list[list[np.ndarray]]) -> list[np.ndarray]:
+    """Stack each frame's rows of panels ``(H, W, 3)`` top to bottom; a row narrower than the
+    first (the last may have fewer panels) is padded with white on the right."""
+    grid = rows[0]
+    for frames in rows[1:]:
+        h, w = frames[0].shape[:2]
+        blank = np.full((h, grid[0].shape[1] - w, 3), 255, np.uint8)
+        grid = [
+            np.concatenate([g, np.concatenate([f, blank], 1)], 0)
+            for g, f in zip(grid, frames, strict=True)
+        ]
+    return grid
+
+
 # --------------------------------------------------------------------------- public API
 
 
@@ -161,10 +182,7 @@ def animate(
         raise ValueError(f"ncols must be an integer >= 1 or None, got {ncols!r}")
     ms = _check_motions(motions)
     n = len(ms)
-    if ncols is None or layout != "side_by_side" or n <= ncols:
-        rows = [list(range(n))]
-    else:
-        rows = [list(range(r, min(r + ncols, n))) for r in range(0, n, ncols)]
+    rows = _panel_rows(n, ncols, layout)
     if labels is not None and len(labels) != n:
         raise ValueError(f"labels has {len(labels)} entries for {n} motions")
     colors = _colors(colors, n)
@@ -173,24 +191,14 @@ def animate(
     idx = _frame_indices(F, fps, motion_fps, stride)
     if out is not None and Path(out).suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"out must end in .gif or .mp4, got {str(out)!r}")
-    grid = None
+    scene_options = (layout, size, trail, follow, targets, motion_fps, view)  # the same each row
+    row_frames = []
     for row in rows:  # each row is one side-by-side scene; the rows are stacked
-        scene = _build_scene(
-            [ms[i] for i in row], parents, None if labels is None else [labels[i] for i in row],
-            [colors[i] for i in row], layout, size, trail, follow, targets, motion_fps, view,
-        )  # fmt: skip
-        frames = _render(scene, idx, backend)  # each (H, w * len(row), 3)
-        if grid is None:
-            grid = frames
-            continue
-        h, w = frames[0].shape[:2]
-        pad = grid[0].shape[1] - w  # the last row may have fewer panels
-        blank = np.full((h, pad, 3), 255, np.uint8)
-        grid = [
-            np.concatenate([g, np.concatenate([f, blank], 1)], 0)
-            for g, f in zip(grid, frames, strict=True)
-        ]
-    frames = grid
+        row_labels = None if labels is None else [labels[i] for i in row]
+        row_motions, row_colors = [ms[i] for i in row], [colors[i] for i in row]
+        scene = _build_scene(row_motions, parents, row_labels, row_colors, *scene_options)
+        row_frames.append(_render(scene, idx, backend))  # each (H, w * len(row), 3)
+    frames = _stack_rows(row_frames)
     if out is None:
         fd, out = tempfile.mkstemp(prefix="minimdm_", suffix=".gif")
         os.close(fd)

@@ -28,7 +28,7 @@ from matplotlib.colors import to_hex
 
 from ..motion.skeleton import Skeleton, forward_kinematics
 from ..validate import InputError, check_choice, check_number, describe
-from .scene import _rgb, _to_numpy
+from .scene import PALETTE, _rgb, _to_numpy
 
 __all__ = ["PAYLOAD_VERSION", "build_payload", "decode_positions", "decode_contacts"]
 
@@ -296,6 +296,77 @@ def _lane_offsets(ms: list[np.ndarray]) -> tuple[list[list[float]], int]:
 # --------------------------------------------------------------------------- the payload
 
 
+def _check_labels(labels: Sequence[str] | None, n: int) -> None:
+    if labels is not None:
+        if isinstance(labels, str) or len(labels) != n:
+            raise InputError(f"labels must hold one label per motion ({n}), got {labels!r}")
+
+
+def _hex_colors(colors: Any, n: int) -> list[str]:
+    """One ``#rrggbb`` per motion: the palette in order, one colour for all, or one each."""
+    if colors is None:
+        cols = [PALETTE[i % len(PALETTE)] for i in range(n)]
+    elif isinstance(colors, str) or (
+        len(colors) in (3, 4) and all(isinstance(c, (int, float)) for c in colors)
+    ):
+        cols = [colors] * n
+    elif len(colors) != n:
+        raise InputError(f"colors must hold one colour per motion ({n}), got {len(colors)}")
+    else:
+        cols = list(colors)
+    try:
+        return [to_hex(_rgb(c)) for c in cols]
+    except ValueError as e:
+        raise InputError(f"colors must be matplotlib colours, got {colors!r}: {e}") from None
+
+
+def _given_contacts(contacts: Any, foot: list[int], n: int) -> dict[int, Any]:
+    """The contact flags given for each motion, by motion index (none: all detected)."""
+    if contacts is not None and not foot:
+        raise InputError("contacts needs feet: name the foot joints the flags belong to")
+    contact_list = _per_motion("contacts", contacts, n, 2) if contacts is not None else []
+    if contacts is not None and contact_list and contact_list[0][0] == -1 and n > 1:
+        raise InputError(f"contacts must be a list of one (T, n_feet) array per motion ({n})")
+    return {i if i >= 0 else 0: c for i, c in contact_list}
+
+
+def _contact_bits(i: int, x: np.ndarray, foot: list[int], given: dict[int, Any], fps: float) -> str:
+    """Motion ``i``'s foot contacts ``(T, n_feet)``, given or detected, as one byte per frame
+    (bit k: foot k down), gzipped and base64-encoded."""
+    if i in given:
+        c = np.asarray(_to_numpy(given[i]))
+        if c.shape != (len(x), len(foot)):
+            raise InputError(
+                f"contacts[{i}] must have shape (T, n_feet) = ({len(x)}, {len(foot)}), "
+                f"got {tuple(c.shape)}"
+            )
+        c = c.astype(bool)
+    else:
+        c = detect_contacts(x, foot, fps)
+    bits = (c.astype(np.uint8) << np.arange(len(foot), dtype=np.uint8)).sum(axis=1)
+    return _b64gz(bits.astype(np.uint8).tobytes())
+
+
+def _shapes(targets: Any, paths: Any, keyframes: Any, n: int, J: int, T: int) -> list[dict]:
+    """The targets, paths and keyframes drawn over the motions (``motion`` -1: in every lane)."""
+    shapes = []
+    for kind, value in (("target", targets), ("path", paths)):
+        for i, v in _per_motion(kind + "s", value, n, 2):
+            label = f"{kind}s" if i < 0 else f"{kind}s[{i}]"
+            pts = _points(label, v)
+            shapes.append({"kind": kind, "motion": i, "points": np.round(pts, 4).tolist()})
+    for i, v in _per_motion("keyframes", keyframes, n, 2):
+        label = "keyframes" if i < 0 else f"keyframes[{i}]"
+        shapes.append({"kind": "keyframes", "motion": i, **_keyframes(label, v, J, T)})
+    return shapes
+
+
+def _check_view(view: Any) -> tuple[float, float]:
+    if not (isinstance(view, (tuple, list)) and len(view) == 2):
+        raise InputError(f"view must be (azimuth, elevation) in degrees, got {view!r}")
+    return (check_number("view[0]", view[0]), check_number("view[1]", view[1], low=-89, high=89))
+
+
 def build_payload(
     motions: Any,
     skeleton: Any,
@@ -319,8 +390,6 @@ def build_payload(
         InputError: a ``ValueError`` naming the argument and the problem: NaN/Inf, no frames,
             wrong shapes, a parents list that does not fit the joints, and so on.
     """
-    from .scene import PALETTE
-
     fps = check_number("fps", fps, low=0, low_open=True)
     if layout == "side_by_side":
         layout = "side"
@@ -338,31 +407,10 @@ def build_payload(
         raise InputError(f"motions must share one skeleton, got joint counts {Js}")
     n, J = len(ms), Js[0]
     parents, names = _parents(skeleton, J)
-    if labels is not None:
-        if isinstance(labels, str) or len(labels) != n:
-            raise InputError(f"labels must hold one label per motion ({n}), got {labels!r}")
-    if colors is None:
-        cols = [PALETTE[i % len(PALETTE)] for i in range(n)]
-    elif isinstance(colors, str) or (
-        len(colors) in (3, 4) and all(isinstance(c, (int, float)) for c in colors)
-    ):
-        cols = [colors] * n
-    elif len(colors) != n:
-        raise InputError(f"colors must hold one colour per motion ({n}), got {len(colors)}")
-    else:
-        cols = list(colors)
-    try:
-        hexes = [to_hex(_rgb(c)) for c in cols]
-    except ValueError as e:
-        raise InputError(f"colors must be matplotlib colours, got {colors!r}: {e}") from None
-
+    _check_labels(labels, n)
+    hexes = _hex_colors(colors, n)
     foot = _feet(feet, skeleton, names, J)
-    if contacts is not None and not foot:
-        raise InputError("contacts needs feet: name the foot joints the flags belong to")
-    contact_list = _per_motion("contacts", contacts, n, 2) if contacts is not None else []
-    if contacts is not None and contact_list and contact_list[0][0] == -1 and n > 1:
-        raise InputError(f"contacts must be a list of one (T, n_feet) array per motion ({n})")
-    given = {i if i >= 0 else 0: c for i, c in contact_list}
+    given = _given_contacts(contacts, foot, n)
 
     offsets, lane_axis = _lane_offsets(ms) if layout == "side" and n > 1 else ([], -1)
     if view is None:  # look across the lanes: from the front when they lie along y
@@ -374,34 +422,10 @@ def build_payload(
         entry["color"] = hexes[i]
         entry["offset"] = offsets[i] if offsets else [0.0, 0.0, 0.0]
         if foot:
-            if i in given:
-                c = np.asarray(_to_numpy(given[i]))
-                if c.shape != (len(x), len(foot)):
-                    raise InputError(
-                        f"contacts[{i}] must have shape (T, n_feet) = ({len(x)}, {len(foot)}), "
-                        f"got {tuple(c.shape)}"
-                    )
-                c = c.astype(bool)
-            else:
-                c = detect_contacts(x, foot, fps)
-            bits = (c.astype(np.uint8) << np.arange(len(foot), dtype=np.uint8)).sum(axis=1)
-            entry["contacts"] = _b64gz(bits.astype(np.uint8).tobytes())
+            entry["contacts"] = _contact_bits(i, x, foot, given, fps)
         out_motions.append(entry)
-
-    T = max(len(m) for m in ms)
-    shapes = []
-    for kind, value in (("target", targets), ("path", paths)):
-        for i, v in _per_motion(kind + "s", value, n, 2):
-            label = f"{kind}s" if i < 0 else f"{kind}s[{i}]"
-            pts = _points(label, v)
-            shapes.append({"kind": kind, "motion": i, "points": np.round(pts, 4).tolist()})
-    for i, v in _per_motion("keyframes", keyframes, n, 2):
-        label = "keyframes" if i < 0 else f"keyframes[{i}]"
-        shapes.append({"kind": "keyframes", "motion": i, **_keyframes(label, v, J, T)})
-
-    if not (isinstance(view, (tuple, list)) and len(view) == 2):
-        raise InputError(f"view must be (azimuth, elevation) in degrees, got {view!r}")
-    view = (check_number("view[0]", view[0]), check_number("view[1]", view[1], low=-89, high=89))
+    shapes = _shapes(targets, paths, keyframes, n, J, max(len(m) for m in ms))
+    view = _check_view(view)
     return {
         "version": PAYLOAD_VERSION,
         "fps": fps,

@@ -53,11 +53,9 @@ def filmstrip(
     w, h = _check_size(size)
     fig = Figure(figsize=(1.6 * n, 1.6 * h / w * len(ms) + 0.3), dpi=120, layout="constrained")
     axes = np.asarray(fig.subplots(len(ms), n, squeeze=False))
+    scene_options = ("overlay", size, trail, True, targets, motion_fps, view)  # follow: True
     for r, m in enumerate(ms):
-        scene = _build_scene(
-            [m], parents, None, [colors[r]], "overlay", size, trail, True, targets,
-            motion_fps, view,
-        )  # fmt: skip
+        scene = _build_scene([m], parents, None, [colors[r]], *scene_options)
         idx = np.linspace(0, len(m) - 1, n).round().astype(int)
         for k, (f, img) in enumerate(zip(idx, _render(scene, idx, backend), strict=True)):
             ax = axes[r, k]

@@ -262,6 +262,26 @@ class Player(HTML):
         return f"<minimdm Player: {n} motion(s), {self.n_frames} frames @ {fps:g} fps>"
 
 
+def _check_player_options(
+    poster: bool, embed: bool | None, size: tuple[int, int]
+) -> tuple[int, int]:
+    """Check the arguments :func:`player` keeps for itself; the size as ``(width, height)``."""
+    if embed is not None and not isinstance(embed, bool):
+        raise InputError(f"embed must be None, True or False, got {embed!r}")
+    if not isinstance(poster, bool):
+        raise InputError(f"poster must be True or False, got {poster!r}")
+    return _check_size(size)
+
+
+def _make_player(
+    payload: dict[str, Any], size: tuple[int, int], poster: bool, embed: bool | None
+) -> Player:
+    """The :class:`Player` of a payload, at ``size`` (width, height), with its poster if asked."""
+    payload["width"], payload["height"] = size
+    still = _poster(payload, payload["parents"], payload["names"]) if poster else None
+    return Player(payload, still, embed)
+
+
 def player(
     motions: Any,
     skeleton: Any,
@@ -285,7 +305,8 @@ def player(
     """A 3D skeleton player (three.js) as an HTML output, the same in JupyterLab and the book.
 
     Readers turn the view (drag), pan (right-drag), zoom (click, then scroll), play and pause,
-    scrub frames and pick a speed. The page needs no network and no kernel.
+    scrub frames and pick a speed; the page needs no network and no kernel. Display the returned
+    :class:`Player` or leave it last in a cell; ``.save("x.html")`` writes a page on its own.
 
     Args:
         motions: global joint positions ``(T, J, 3)`` in metres, z-up (numpy or torch), a
@@ -320,19 +341,10 @@ def player(
         embed: carry the player's code (about 240 kB) in this output: None decides by itself
             (once per kernel), True always, False never.
 
-    Returns:
-        a :class:`Player`: display it (or leave it last in a cell); ``.save("x.html")`` writes
-        a page that works on its own.
-
     Raises:
-        InputError: a ``ValueError`` naming the problem (NaN positions, no frames, a parents
-            list that does not fit, a bad shape...), raised before any HTML is made.
+        InputError: a ``ValueError`` naming the bad input, before any HTML is made.
     """
-    if embed is not None and not isinstance(embed, bool):
-        raise InputError(f"embed must be None, True or False, got {embed!r}")
-    if not isinstance(poster, bool):
-        raise InputError(f"poster must be True or False, got {poster!r}")
-    w, h = _check_size(size)
+    size = _check_player_options(poster, embed, size)
     payload = build_payload(
         motions,
         skeleton,
@@ -349,6 +361,4 @@ def player(
         view=view,
         autoplay=autoplay,
     )
-    payload["width"], payload["height"] = w, h
-    still = _poster(payload, payload["parents"], payload["names"]) if poster else None
-    return Player(payload, still, embed)
+    return _make_player(payload, size, poster, embed)
