@@ -533,6 +533,7 @@ def _add_sample_parser(add: _AddParser) -> None:
     )
     s.add_argument("--seed", type=_int_arg(0, 2**63 - 1), default=0)
     s.add_argument("--device", default="cpu")
+    s.add_argument("--threads", type=_int_arg(1), default=1, help="torch CPU threads (default 1)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(fn=_cmd_sample)
 
@@ -547,6 +548,7 @@ def _add_eval_parser(add: _AddParser) -> None:
     e.add_argument("--seeds", type=seeds, default=3, help="repeated seeds (mean ± std)")
     e.add_argument("--steps", type=_int_arg(1), default=None, help="denoising steps (default: T)")
     e.add_argument("--device", default="cpu")
+    e.add_argument("--threads", type=_int_arg(1), default=2, help="torch CPU threads (default 2)")
     e.set_defaults(fn=_cmd_eval)
 
 
@@ -660,13 +662,16 @@ traceback of these too."""
 
 def run(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> int:
     """Parse ``argv`` and run its command: the one error path of every command (module
-    docstring). The parser's commands set ``fn`` and take ``--debug``."""
+    docstring). The parser's commands set ``fn`` and take ``--debug``; a command with
+    ``--threads`` runs on that many torch threads (the library leaves threads to its callers)."""
     from minimdm.amdm.sampling import NonFiniteFrameError
     from minimdm.motion.download import DownloadError
+    from minimdm.utils import num_threads
 
     args = parser.parse_args(argv)
     try:
-        return args.fn(args)
+        with num_threads(getattr(args, "threads", None)):
+            return args.fn(args)
     except (*USER_ERRORS, DownloadError, NonFiniteFrameError) as e:
         if args.debug:
             raise
