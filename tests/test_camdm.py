@@ -17,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minimdm
+from minimdm.amdm.sampling import NonFiniteFrameError
 from minimdm.camdm import controller as camdm_controller
 from minimdm.camdm.classifier import frechet_distance, load_classifier
 from minimdm.camdm.controller import CAMDMController, Commands, ControlConfig
@@ -485,6 +486,27 @@ def test_inertialization_removes_the_pop_of_a_jolting_planner(tiny):
         accel[halflife] = a[at].mean().item()
     assert accel[0.0] > 0.04  # the 5 cm jump, in metres per frame^2
     assert accel[0.15] < 0.05 * accel[0.0]
+
+
+def test_a_non_finite_plan_names_the_frame_and_the_character(tiny):
+    """run() checks each frame it applies: a plan's NaN raises, naming the frame and the
+    character, before the frame enters the history."""
+    ckpt, _ = tiny
+    plans = []
+
+    def poisoned(past, generator, style, trajectory, gamma):  # the second plan: NaN for 1
+        future = past[:, -1:].repeat(1, F, 1)
+        if plans:
+            future[1, :, 0] = float("nan")
+        plans.append(future)
+        return future
+
+    ctl = CAMDMController(ckpt, ControlConfig(M=3), planner=poisoned)
+    ctl.reset(walker("big"), n_characters=2)
+    with pytest.raises(NonFiniteFrameError, match=r"camdm control .*frame 4 .*character 1") as e:
+        ctl.run(Commands.hold([0.9, 0.0], 0.0, 0, 6, batch=2), 6)
+    assert e.value.frame == 4 and e.value.row == 1 and len(plans) == 2
+    assert torch.isfinite(ctl.history).all()
 
 
 def test_frechet_distance():
