@@ -67,9 +67,9 @@ def walker(style: str, n: int = 40, names=("Hips", "Spine", "LegL", "LegR"), spe
 
 
 def tiny_config(**kw) -> CAMDMTrainConfig:
-    base = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0, past=P, future=F, T=4,
-                batch_size=16, total_steps=60, warmup_steps=5, lr=3e-3, log_interval=10,
-                eval_interval=0, ckpt_interval=0, ema_decay=0.0, p_drop_style=0.1)  # fmt: skip
+    base = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0, past=P, future=F, T=4)
+    base |= dict(batch_size=16, total_steps=60, warmup_steps=5, lr=3e-3, log_interval=10)
+    base |= dict(eval_interval=0, ckpt_interval=0, ema_decay=0.0, p_drop_style=0.1)
     return CAMDMTrainConfig(**{**base, **kw})
 
 
@@ -95,8 +95,8 @@ def conditions(B: int = 3, seed: int = 0, n_styles: int = 2) -> Conditions:
 
 def net(tokens: str = "separate", backbone: str = "transformer") -> CAMDM:
     torch.manual_seed(0)
-    return CAMDM(CAMDMConfig(D, 2, P, F, latent=16, layers=1, heads=2, ff=32, dropout=0.0,
-                             tokens=tokens, backbone=backbone)).eval()  # fmt: skip
+    size = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0)
+    return CAMDM(CAMDMConfig(D, 2, P, F, **size, tokens=tokens, backbone=backbone)).eval()
 
 
 # ------------------------------------------------------------------------------ token layout
@@ -232,8 +232,11 @@ def test_hfte_extends_a_straight_line_straight(heading, step, side, n, length):
 
 
 @settings(max_examples=30, deadline=None)
-@given(radius=st.floats(0.5, 5.0), dtheta=st.floats(-0.05, 0.05).filter(lambda a: abs(a) > 1e-3),
-       n=st.integers(16, 45))  # fmt: skip
+@given(
+    radius=st.floats(0.5, 5.0),
+    dtheta=st.floats(-0.05, 0.05).filter(lambda a: abs(a) > 1e-3),
+    n=st.integers(16, 45),
+)
 def test_hfte_keeps_the_curvature_of_a_circle(radius, dtheta, n):
     a = torch.arange(n, dtype=torch.float64) * dtheta
     xy = torch.stack([radius * torch.sin(a), radius * (1 - torch.cos(a))], -1)[None]
@@ -257,8 +260,8 @@ def test_springs_reach_the_joystick():
     torch.testing.assert_close(v, torch.tensor([1.0, 0.0]), atol=1e-3, rtol=0)
     assert torch.equal(xy[0, :, 1], torch.zeros(90))
     # a turn from 170 to -170 degrees goes the short way, through 180
-    h = spring_headings(torch.tensor([math.radians(170)]), torch.zeros(1),
-                        torch.tensor([math.radians(-170)]), 0.3, t)  # fmt: skip
+    h0, h1 = torch.tensor([math.radians(170)]), torch.tensor([math.radians(-170)])
+    h = spring_headings(h0, torch.zeros(1), h1, 0.3, t)
     assert h[0].diff().min() >= 0 and abs(h[0, -1].item() - math.radians(190)) < 1e-3
 
 
