@@ -17,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minimdm
+from minimdm.amdm.sampling import NonFiniteFrameError
 from minimdm.camdm import controller as camdm_controller
 from minimdm.camdm.classifier import frechet_distance, load_classifier
 from minimdm.camdm.controller import CAMDMController, Commands, ControlConfig
@@ -66,9 +67,9 @@ def walker(style: str, n: int = 40, names=("Hips", "Spine", "LegL", "LegR"), spe
 
 
 def tiny_config(**kw) -> CAMDMTrainConfig:
-    base = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0, past=P, future=F, T=4,
-                batch_size=16, total_steps=60, warmup_steps=5, lr=3e-3, log_interval=10,
-                eval_interval=0, ckpt_interval=0, ema_decay=0.0, p_drop_style=0.1)  # fmt: skip
+    base = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0, past=P, future=F, T=4)
+    base |= dict(batch_size=16, total_steps=60, warmup_steps=5, lr=3e-3, log_interval=10)
+    base |= dict(eval_interval=0, ckpt_interval=0, ema_decay=0.0, p_drop_style=0.1)
     return CAMDMTrainConfig(**{**base, **kw})
 
 
@@ -94,8 +95,8 @@ def conditions(B: int = 3, seed: int = 0, n_styles: int = 2) -> Conditions:
 
 def net(tokens: str = "separate", backbone: str = "transformer") -> CAMDM:
     torch.manual_seed(0)
-    return CAMDM(CAMDMConfig(D, 2, P, F, latent=16, layers=1, heads=2, ff=32, dropout=0.0,
-                             tokens=tokens, backbone=backbone)).eval()  # fmt: skip
+    size = dict(latent=16, layers=1, heads=2, ff=32, dropout=0.0)
+    return CAMDM(CAMDMConfig(D, 2, P, F, **size, tokens=tokens, backbone=backbone)).eval()
 
 
 # ------------------------------------------------------------------------------ token layout
@@ -231,8 +232,11 @@ def test_hfte_extends_a_straight_line_straight(heading, step, side, n, length):
 
 
 @settings(max_examples=30, deadline=None)
-@given(radius=st.floats(0.5, 5.0), dtheta=st.floats(-0.05, 0.05).filter(lambda a: abs(a) > 1e-3),
-       n=st.integers(16, 45))  # fmt: skip
+@given(
+    radius=st.floats(0.5, 5.0),
+    dtheta=st.floats(-0.05, 0.05).filter(lambda a: abs(a) > 1e-3),
+    n=st.integers(16, 45),
+)
 def test_hfte_keeps_the_curvature_of_a_circle(radius, dtheta, n):
     a = torch.arange(n, dtype=torch.float64) * dtheta
     xy = torch.stack([radius * torch.sin(a), radius * (1 - torch.cos(a))], -1)[None]
@@ -256,8 +260,8 @@ def test_springs_reach_the_joystick():
     torch.testing.assert_close(v, torch.tensor([1.0, 0.0]), atol=1e-3, rtol=0)
     assert torch.equal(xy[0, :, 1], torch.zeros(90))
     # a turn from 170 to -170 degrees goes the short way, through 180
-    h = spring_headings(torch.tensor([math.radians(170)]), torch.zeros(1),
-                        torch.tensor([math.radians(-170)]), 0.3, t)  # fmt: skip
+    h0, h1 = torch.tensor([math.radians(170)]), torch.tensor([math.radians(-170)])
+    h = spring_headings(h0, torch.zeros(1), h1, 0.3, t)
     assert h[0].diff().min() >= 0 and abs(h[0, -1].item() - math.radians(190)) < 1e-3
 
 
@@ -521,6 +525,27 @@ def test_inertialization_removes_the_pop_of_a_jolting_planner(tiny):
         accel[halflife] = a[at].mean().item()
     assert accel[0.0] > 0.04  # the 5 cm jump, in metres per frame^2
     assert accel[0.15] < 0.05 * accel[0.0]
+
+
+def test_a_non_finite_plan_names_the_frame_and_the_character(tiny):
+    """run() checks each frame it applies: a plan's NaN raises, naming the frame and the
+    character, before the frame enters the history."""
+    ckpt, _ = tiny
+    plans = []
+
+    def poisoned(past, generator, style, trajectory, gamma):  # the second plan: NaN for 1
+        future = past[:, -1:].repeat(1, F, 1)
+        if plans:
+            future[1, :, 0] = float("nan")
+        plans.append(future)
+        return future
+
+    ctl = CAMDMController(ckpt, ControlConfig(M=3), planner=poisoned)
+    ctl.reset(walker("big"), n_characters=2)
+    with pytest.raises(NonFiniteFrameError, match=r"camdm control .*frame 4 .*character 1") as e:
+        ctl.run(Commands.hold([0.9, 0.0], 0.0, 0, 6, batch=2), 6)
+    assert e.value.frame == 4 and e.value.row == 1 and len(plans) == 2
+    assert torch.isfinite(ctl.history).all()
 
 
 def test_frechet_distance():

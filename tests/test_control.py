@@ -224,8 +224,9 @@ def test_beam_search_commits_the_first_frame_of_the_best_candidate(tmp_path):
         return future.features[..., 0].sum(-1)
 
     P, H, F = 5, 3, 4
-    m = C.beam_search(ck, start_state(), score, F, pool=P, horizon=H,
-                      generator=torch.Generator().manual_seed(0))  # fmt: skip
+    m = C.beam_search(
+        ck, start_state(), score, F, pool=P, horizon=H, generator=torch.Generator().manual_seed(0)
+    )
     assert len(seen) == F and seen[0].features.shape == (1, P, H, D)
     for f, fut in enumerate(seen):
         best = fut.features[0, :, :, 0].sum(-1).argmax()
@@ -244,8 +245,8 @@ def test_beam_search_commits_several_frames_of_the_best_plan(tmp_path):
         seen.append(future)
         return -future.features[..., 1].abs().sum(-1)
 
-    m = C.beam_search(ck, start_state(2), score, 7, pool=3, horizon=3, commit=3,
-                      generator=torch.Generator().manual_seed(0))  # fmt: skip
+    g = torch.Generator().manual_seed(0)
+    m = C.beam_search(ck, start_state(2), score, 7, pool=3, horizon=3, commit=3, generator=g)
     assert [fut.frame for fut in seen] == [0, 3, 6]  # one search per 3 kept frames
     for fut in seen:
         best = (-fut.features[..., 1].abs().sum(-1)).argmax(1)  # (b,)
@@ -280,17 +281,20 @@ def test_mse_baseline_needs_noise_for_distinct_candidates():
     torch.manual_seed(0)
     mse = MLPRegressor(D, D, width=16, depth=3)
     futures = []
-    C.beam_search(mse, start_state(), lambda f: futures.append(f) or f.features[..., 0, 0], 2,
-                  pool=4)  # fmt: skip
+
+    def keep(f):  # keeps the candidates, scores them by their first feature
+        futures.append(f)
+        return f.features[..., 0, 0]
+
+    C.beam_search(mse, start_state(), keep, 2, pool=4)
     assert torch.equal(futures[0].features[0, 0], futures[0].features[0, 3])  # all identical
     futures.clear()
     noisy = Sampler.load(mse, noise=0.1)
-    C.beam_search(noisy, start_state(), lambda f: futures.append(f) or f.features[..., 0, 0], 2,
-                  pool=4, generator=torch.Generator().manual_seed(0))  # fmt: skip
+    C.beam_search(noisy, start_state(), keep, 2, pool=4, generator=torch.Generator().manual_seed(0))
     assert not torch.equal(futures[0].features[0, 0], futures[0].features[0, 3])
     mvae = MVAE(MVAEConfig(D, D, latent_dim=4, width=16, depth=3))
-    m = C.beam_search(mvae, start_state(3), lambda f: f.features[..., 0, 0], 2, pool=4,
-                      generator=torch.Generator().manual_seed(0))  # fmt: skip
+    g = torch.Generator().manual_seed(0)
+    m = C.beam_search(mvae, start_state(3), lambda f: f.features[..., 0, 0], 2, pool=4, generator=g)
     assert m.positions.shape == (3, 2, J, 3)
 
 
@@ -376,15 +380,16 @@ def _train_walker(tmp_path_factory):
     clips = data.load_clips(fps=30, loop_frames=150, names=names)
     arr = [features.encode(c) for c in clips]
     norm = features.Normalizer.fit(arr)
-    cfg = TrainConfig(
-        width=128, depth=3, time_dim=32, T=10, predicts="eps", total_steps=500, batch_size=64,
-        rollout=2, teacher_steps=250, ramp_steps=150, eval_interval=0, ckpt_interval=0,
-        lr=1e-3, lr_min=1e-4, ema_decay=0.99,
-    )  # fmt: skip
+    net = dict(width=128, depth=3, time_dim=32, T=10, predicts="eps")
+    steps = dict(total_steps=500, batch_size=64, rollout=2, teacher_steps=250, ramp_steps=150)
+    opt = dict(lr=1e-3, lr_min=1e-4, ema_decay=0.99, eval_interval=0, ckpt_interval=0)
+    cfg = TrainConfig(**net, **steps, **opt)
     layout = features.FeatureLayout.for_skeleton(clips.skeleton)
     out = tmp_path_factory.mktemp("walker")
-    res = train_amdm(cfg, out, [norm.normalize(a) for a in arr], normalizer=norm,
-                     skeleton=clips.skeleton, layout=layout, progress=False)  # fmt: skip
+    data = [norm.normalize(a) for a in arr]
+    res = train_amdm(
+        cfg, out, data, normalizer=norm, skeleton=clips.skeleton, layout=layout, progress=False
+    )
     return res.checkpoint, clips
 
 
@@ -394,10 +399,8 @@ def test_beam_search_reaches_a_nearby_target(walker):
     start = C.clip_frame(clips["walk"], 10, cm.layout)
     goal = torch.tensor([1.5, 1.0])
     g = torch.Generator().manual_seed(0)
-    m = C.beam_search(
-        ck, start, C.target_score(goal), 150, pool=16, horizon=4, generator=g,
-        stop_fn=C.reached(goal),
-    )  # fmt: skip
+    score, stop = C.target_score(goal), C.reached(goal)
+    m = C.beam_search(ck, start, score, 150, pool=16, horizon=4, generator=g, stop_fn=stop)
     assert m.info["done_at"] > 0  # reached within 15 cm
     assert (m.root_xy[-1] - goal).norm() <= 0.15
     assert m.positions.shape == (m.info["done_at"], 15, 3)
@@ -409,8 +412,7 @@ def test_inbetweening_lands_on_the_keyframe(walker):
     start = C.clip_frame(clips["walk"], 10, cm.layout)
     key = C.clip_frame(clips["run"], 12, cm.layout)
     B, N = 8, 30
-    m = C.inbetween(ck, start.expand(B, -1), key, N,
-                    torch.Generator().manual_seed(0))  # fmt: skip
+    m = C.inbetween(ck, start.expand(B, -1), key, N, torch.Generator().manual_seed(0))
     pos = cm.layout.joint_pos
     err = (m.features[:, -1, pos] - key[pos]).unflatten(-1, (15, 3)).norm(dim=-1).mean() * 100
     free = rollout(ck, start[None], N, B, generator=torch.Generator().manual_seed(0))
@@ -484,18 +486,18 @@ def test_beam_search_is_bit_identical_to_the_old_loops(tmp_path, H, commit):
         return (now.index == 0) & torch.tensor(now.frame >= 2)
 
     x0 = start_state(3)
-    m = C.beam_search(cm, x0, score, 7, pool=4, horizon=H, commit=commit, stop_fn=stop,
-                      generator=torch.Generator().manual_seed(3))  # fmt: skip
-    out, scores, done_at = _old_beam(cm, x0, score, 7, 4, H, torch.Generator().manual_seed(3),
-                                     commit, stop)  # fmt: skip
+    search = dict(pool=4, horizon=H, commit=commit, stop_fn=stop)
+    m = C.beam_search(cm, x0, score, 7, **search, generator=torch.Generator().manual_seed(3))
+    out, scores, done_at = _old_beam(
+        cm, x0, score, 7, 4, H, torch.Generator().manual_seed(3), commit, stop
+    )
     assert done_at.tolist() == m.info["done_at"].tolist() and done_at[0] >= 3
     assert torch.equal(m.normalized[1:], out[1:])  # characters that kept searching
     k = int(done_at[0])
     assert torch.equal(m.normalized[0, :k], out[0, :k])  # and the first until it was done
     torch.testing.assert_close(m.info["score"], scores.float(), rtol=0, atol=0, equal_nan=True)
     # when every character is done the search stops: one character, the motion ends there
-    m1 = C.beam_search(cm, x0[0], score, 7, pool=4, horizon=H, commit=commit, stop_fn=stop,
-                       generator=torch.Generator().manual_seed(3))  # fmt: skip
+    m1 = C.beam_search(cm, x0[0], score, 7, **search, generator=torch.Generator().manual_seed(3))
     assert m1.n_frames == m1.info["done_at"] == k
 
 

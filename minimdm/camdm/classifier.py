@@ -119,11 +119,14 @@ class StyleClassifier(nn.Module):
         super().__init__()
         self.config = c = config
         w = c.width
-        self.convs = nn.Sequential(
-            nn.Conv1d(c.in_dim, w, 5, padding=2), nn.GELU(),
-            nn.Conv1d(w, w, 5, stride=2, padding=2), nn.GELU(),
-            nn.Conv1d(w, w, 5, stride=2, padding=2), nn.GELU(),
-        )  # fmt: skip
+        self.convs = nn.Sequential(  # (B, C, W) -> (B, width, ceil(W / 4))
+            nn.Conv1d(c.in_dim, w, 5, padding=2),
+            nn.GELU(),
+            nn.Conv1d(w, w, 5, stride=2, padding=2),
+            nn.GELU(),
+            nn.Conv1d(w, w, 5, stride=2, padding=2),
+            nn.GELU(),
+        )
         self.project = nn.Linear(2 * w, c.feature_dim)
         self.head = nn.Sequential(
             nn.GELU(), nn.Dropout(c.dropout), nn.Linear(c.feature_dim, c.n_styles)

@@ -1,10 +1,12 @@
-"""The CAMDM run-time controller (Chen et al. 2024, §3.2-3.3), on the library's one rollout loop.
+"""The CAMDM run-time controller (Chen et al. 2024, §3.2-3.3).
 
 A joystick gives, per frame and character, a desired ground velocity, a facing and a style
 (:class:`Commands`). The controller keeps the character's last P frames and a *plan* of F
-future frames. Each frame of :func:`minimdm.amdm.sampling.autoregress` applies the next frame
-of the plan; it re-plans when M frames (15) have been applied, or at once when the input
-changes. A plan:
+future frames. :meth:`CAMDMController.run` is a plain loop over frames: each applies the next
+frame of the plan, after the library's one non-finite check
+(:func:`minimdm.amdm.sampling.check_finite`); it re-plans when M frames (15) have been applied,
+or at once when the input changes. Unlike A-MDM, a frame is not sampled from the one before
+it: a plan samples F frames at once. A plan:
 
 1. puts the last P frames in the frame of the current one (:func:`~minimdm.camdm.data.
    to_canonical`);
@@ -46,7 +48,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from minimdm.amdm.sampling import autoregress
+from minimdm.amdm.sampling import check_finite
 from minimdm.checkpoint import Checkpoint, check_same_model
 from minimdm.diffusion import NoiseTape
 from minimdm.motion.data import Clip
@@ -210,11 +212,9 @@ class CAMDMController:
             raise InputTypeError(f"planner must be callable or None, got {describe(planner)}")
         meta = getattr(planner, "metadata", None)
         if meta is not None:
-            L = self.layout
-            want = {"kind": "camdm", "P": L.past, "F": L.future, "D": L.dim,
-                    "guide": self.config.guide}  # fmt: skip
-            got = {"kind": meta.get("kind"), **{k: meta.get("plan", {}).get(k) for k in
-                   ("P", "F", "D", "guide")}}  # fmt: skip
+            L, plan, guide = self.layout, meta.get("plan", {}), self.config.guide
+            want = {"kind": "camdm", "P": L.past, "F": L.future, "D": L.dim, "guide": guide}
+            got = {"kind": meta.get("kind"), **{k: plan.get(k) for k in ("P", "F", "D", "guide")}}
             if got != want:
                 raise InputError(f"planner must be a CAMDM planning call with {want}, got {got}")
         where = str(self.checkpoint.paths.weights)
@@ -328,8 +328,14 @@ class CAMDMController:
         L = self.layout
         n_characters = check_int("n_characters", n_characters, low=1)
         if isinstance(start, Clip):
-            check_skeleton("start", start.skeleton, self.skeleton, given_fps=start.fps,
-                           expected_fps=L.fps, model="the CAMDM model")  # fmt: skip
+            check_skeleton(
+                "start",
+                start.skeleton,
+                self.skeleton,
+                given_fps=start.fps,
+                expected_fps=L.fps,
+                model="the CAMDM model",
+            )
             if start.n_frames < L.past:
                 raise InputError(
                     f"start must be a clip of at least P = {L.past} frames, got {start.n_frames}"
@@ -368,10 +374,8 @@ class CAMDMController:
         B = self.history.shape[0]
         parts = [("velocity", commands.velocity, (2,)), ("facing", commands.facing, ())]
         for name, x, tail in [*parts, ("style", commands.style, ())]:
-            want = (B, n_frames, *tail)
             words = f"({B}, N >= {n_frames}{''.join(f', {t}' for t in tail)})"
-            if not isinstance(x, Tensor) or x.dim() != len(want) or x.shape[0] != B or \
-                    x.shape[1] < n_frames or tuple(x.shape[2:]) != tail:  # fmt: skip
+            if not _has_shape(x, B, n_frames, tail):
                 got = tuple(x.shape) if isinstance(x, Tensor) else describe(x)
                 raise InputError(f"commands.{name} must have shape {words}, got {got}")
             if x.is_floating_point() and not torch.isfinite(x).all():
@@ -390,31 +394,32 @@ class CAMDMController:
     def run(
         self, commands: Commands, n_frames: int, generator: torch.Generator | None = None
     ) -> ControlResult:
-        """Animate ``n_frames`` frames under ``commands`` on the one rollout loop."""
+        """Animate ``n_frames`` frames under ``commands``, continuing the last run: each frame
+        re-plans if it must (:meth:`_needs_plan`: M frames applied, or a new input; CAMDM
+        §3.3), then applies the plan's next frame. A plan's frames are checked as they are
+        applied: a non-finite one raises :class:`~minimdm.amdm.sampling.NonFiniteFrameError`
+        naming the frame (1-based, of this run) and the character."""
         if self.history is None:
             raise InputError("call reset(start) before run()")
         n_frames = check_int("n_frames", n_frames, low=1)
         commands = self._check_commands(commands, n_frames)
         check_generator("generator", generator, self.device)
         result = ControlResult(frames=torch.empty(0), positions=torch.empty(0))
-
-        def step(f: int, x_prev: Tensor) -> Tensor:  # frame f (1-based) of this run
-            i = f - 1
-            cmd = (commands.velocity[:, i].to(self.device), commands.facing[:, i].to(self.device),
-                   commands.style[:, i].to(self.device))  # fmt: skip
-            if self._needs_plan(cmd):
-                self._make_plan(cmd, generator, result, i)
-            frame = self._plan[:, self._applied]  # (B, D)
-            self._applied += 1
-            self._frame += 1
-            self.history = torch.cat([self.history[:, 1:], frame[:, None]], 1)
-            return frame
-
         B = self.history.shape[0]
-        n = 1 if self.device.type == "cpu" and B < 64 else None
+        frames = torch.empty(B, n_frames, self.layout.dim, dtype=torch.float32)  # (B, N, D) CPU
+        n = 1 if self.device.type == "cpu" and B < 64 else None  # small batches: one thread
+        parts = (commands.velocity, commands.facing, commands.style)
         with num_threads(n):
-            frames = autoregress(step, self.history[:, -1], n_frames, desc="camdm control",
-                                 who=lambda b: f"character {b}")  # fmt: skip
+            for i in range(n_frames):
+                cmd = tuple(c[:, i].to(self.device) for c in parts)  # velocity, facing, style
+                if self._needs_plan(cmd):
+                    self._make_plan(cmd, generator, result, i)
+                frame = self._plan[:, self._applied]  # (B, D)
+                check_finite(frame, i + 1, lambda b: f"character {b}", "camdm control")
+                self._applied += 1
+                self._frame += 1
+                self.history = torch.cat([self.history[:, 1:], frame[:, None]], 1)
+                frames[:, i] = frame.float().cpu()
         result.frames = frames
         result.positions = frame_positions(frames.double(), self.skeleton).float()
         return result
@@ -482,3 +487,10 @@ class CAMDMController:
         result.replans.append(i)
         result.gammas.append(gamma)
         result.trajectories.append(torch.cat([traj_xy, traj_h[..., None]], -1).cpu())
+
+
+def _has_shape(x: Any, B: int, n_frames: int, tail: tuple[int, ...]) -> bool:
+    """Whether ``x`` is a tensor of shape (B, N >= n_frames, *tail)."""
+    if not isinstance(x, Tensor) or x.dim() != 2 + len(tail):
+        return False
+    return x.shape[0] == B and x.shape[1] >= n_frames and tuple(x.shape[2:]) == tail

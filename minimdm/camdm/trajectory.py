@@ -52,10 +52,8 @@ def spring_positions(
     j0 = (velocity - goal_velocity)[:, None]  # (B, 1, 2)
     j1 = j0 * y
     e = torch.exp(-y * t)
-    return (
-        e * (-j1 / y**2 + (-j0 - j1 * t) / y) + j1 / y**2 + j0 / y
-        + goal_velocity[:, None] * t + xy[:, None]
-    )  # fmt: skip
+    drift = e * (-j1 / y**2 + (-j0 - j1 * t) / y) + j1 / y**2 + j0 / y  # (B, n, 2), from j0
+    return drift + goal_velocity[:, None] * t + xy[:, None]
 
 
 def spring_path(goal_velocity: Tensor, halflife: float, dt: float) -> Tensor:

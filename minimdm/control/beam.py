@@ -10,11 +10,12 @@ where ``future`` is a :class:`Future`: the candidates' features and, decoded fro
 root pose, their root path, headings and joint positions. :mod:`minimdm.control.scores` has
 target reaching, heading and speed.
 
-Both loops of the search run on the one rollout loop,
-:func:`~minimdm.amdm.sampling.autoregress`: the candidates' horizon is a rollout of H frames of
-the (b P) batch, and the search itself is the step of the outer rollout: at a frame where the
-last plan has been committed, it searches and takes the best plan; at every frame it returns
-that plan's next frame.
+The search is two plain loops, the notebook's ``my_search`` with its bookkeeping: the outer
+one searches, then commits the first ``commit`` frames of each character's best plan; the inner
+one (:func:`_propose`) samples the candidates' H frames, the whole (b P) batch at once, with
+:meth:`~minimdm.amdm.sampling.Sampler.frame`. Every sampled frame goes through the library's
+one non-finite check, :func:`~minimdm.amdm.sampling.check_finite`, which names the frame, the
+character and the candidate.
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ from functools import cached_property
 
 import torch
 from torch import Tensor, nn
+from tqdm.auto import tqdm
 
-from minimdm.amdm.sampling import Sampler, autoregress
+from minimdm.amdm.sampling import Sampler, check_finite
 from minimdm.checkpoint import Checkpoint
 from minimdm.motion.features import StartPose, decode, decode_root
 from minimdm.validate import InputTypeError, describe
@@ -144,100 +146,131 @@ def beam_search(
         frame (B, F), NaN after completion.
     """
     cm = Sampler.load(model)
+    n_frames, P, H, commit = _check_counts(n_frames, pool, horizon, commit)
+    _check_callables(score_fn, stop_fn)
+    x0, batched, sp = as_start(cm, start, start_pose, generator)
+    B, D = x0.shape
+    x = cm.normalize(x0).clone()  # (B, D) the current states, normalized
+    xy, heading = sp.xy.clone(), sp.heading.clone()  # (B, 2), (B,) their root pose
+    out = torch.empty(B, n_frames, D, dtype=torch.float32)  # committed frames, normalized, CPU
+    best_scores = torch.full((B, n_frames), float("nan"))  # the score that chose each frame
+    done_at = torch.full((B,), -1, dtype=torch.long)
+    f = 0  # frames committed
+    with tqdm(total=n_frames, disable=not progress, desc="beam search", unit="frame") as bar:
+        while f < n_frames and (done_at < 0).any():
+            active = (done_at < 0).nonzero()[:, 0]  # (b,) the characters still searching
+            cand = _propose(cm, x[active], P, H, f, generator, active)  # (b, P, H, D)
+            future = Future(
+                cm.denormalize(cand).float().cpu(), xy[active], heading[active], active, f, cm.fps
+            )
+            plan, plan_feats, score = _best(cand, future, score_fn(future))
+            going = torch.arange(len(active))  # rows of the plan still committing frames
+            for j in range(min(commit, n_frames - f)):  # receding horizon: its first frames
+                rows = active[going]
+                x[rows] = plan[going, j]  # characters that have stopped keep their state
+                out[:, f] = x.float().cpu()
+                best_scores[rows, f] = score[going]
+                now = Future(
+                    plan_feats[going, j][:, None, None], xy[rows], heading[rows], rows, f, cm.fps
+                )
+                xy[rows], heading[rows] = now.root_xy[:, 0, 0], now.heading[:, 0, 0]
+                f += 1
+                bar.update()
+                if stop_fn is not None:
+                    stop = _stopped(stop_fn(now), len(rows))
+                    done_at[rows[stop]] = f
+                    going = going[~stop]
+    info = {"pool": P, "horizon": H, "commit": commit}
+    return _motion(cm, out, best_scores, done_at, sp, batched, info)
+
+
+def _check_counts(n_frames: int, pool: int, horizon: int, commit: int) -> tuple[int, ...]:
+    """``n_frames``, ``pool``, ``horizon`` and ``commit`` checked: counts, commit <= horizon."""
     n_frames = check_count("n_frames", n_frames)
     P = check_count("pool", pool)
     H = check_count("horizon", horizon)
     commit = check_count("commit", commit)
     if commit > H:
         raise ValueError(f"commit must lie in [1, horizon={H}], got {commit}")
+    return n_frames, P, H, commit
+
+
+def _check_callables(score_fn: ScoreFn, stop_fn: StopFn | None) -> None:
+    """``score_fn`` must be callable, ``stop_fn`` callable or None."""
     if not callable(score_fn):
         raise InputTypeError(f"score_fn must be callable, got {describe(score_fn)}")
     if stop_fn is not None and not callable(stop_fn):
         raise InputTypeError(f"stop_fn must be callable or None, got {describe(stop_fn)}")
-    x0, batched, sp = as_start(cm, start, start_pose, generator)
-    B, D = x0.shape
-    xy, heading = sp.xy.clone(), sp.heading.clone()  # (B, 2), (B,) the current root pose
-    out = torch.empty(B, n_frames, D, dtype=torch.float32)  # normalized frames, CPU
-    best_scores = torch.full((B, n_frames), float("nan"))
-    done_at = torch.full((B,), -1, dtype=torch.long)
-    # the current search: the characters searching, its best plan, the rows still committing
-    # its frames and how many of them are left
-    s = {"active": torch.arange(B), "left": 0}
 
-    def search(f: int, cond: Tensor) -> None:
-        """Propose P futures of H frames after frame f - 1 for the active characters; keep the
-        best plan (its first ``commit`` frames, at most to the end)."""
-        active = s["active"] = s["active"][done_at[s["active"]] < 0]
-        b = active.numel()
-        c = cond[active].repeat_interleave(P, dim=0)  # (b P, D), character-major
 
-        def candidate(r: int) -> str:
-            return f"character {int(active[r // P])}, candidate {r % P}"
+def _propose(
+    cm: Sampler,
+    x: Tensor,
+    P: int,
+    H: int,
+    f: int,
+    generator: torch.Generator | None,
+    active: Tensor,
+) -> Tensor:
+    """P candidate futures of H frames from each state ``x`` (b, D) after ``f`` committed
+    frames: (b, P, H, D), normalized, each frame drawn by :meth:`Sampler.frame` from the last
+    (A-MDM §3.1) for all b P candidates at once. ``active`` (b,) names the characters."""
+    b, D = x.shape
 
-        def propose(h: int, x: Tensor) -> Tensor:
-            return cm.frame(x, generator)
+    def who(r: int) -> str:
+        return f"character {int(active[r // P])}, candidate {r % P}"
 
-        cand = autoregress(propose, c, H, first=f, who=candidate, desc="beam search")
-        cand = cand.to(c.device, c.dtype).reshape(b, P, H, D)  # normalized
-        future = Future(
-            cm.denormalize(cand).float().cpu(), xy[active], heading[active], active, f - 1, cm.fps
-        )
-        scores = torch.as_tensor(score_fn(future)).to("cpu", torch.float64)
-        if scores.shape != (b, P):
-            raise ValueError(
-                f"score_fn must return shape (b={b}, P={P}), got {tuple(scores.shape)}"
-            )
-        if torch.isnan(scores).any():
-            raise ValueError(f"score_fn returned NaN at frame {f}")
-        best = scores.argmax(dim=1)  # (b,)
-        s["plan"] = cand[torch.arange(b), best.to(cand.device)]  # (b, H, D) normalized
-        s["plan_feats"] = future.features[torch.arange(b), best]  # (b, H, D) feature units
-        s["best_score"] = scores[torch.arange(b), best].float()
-        s["going"] = torch.arange(b)  # rows of this search still committing frames
-        s["j"], s["left"] = 0, min(commit, n_frames - f + 1)
+    frames = [x.repeat_interleave(P, dim=0)]  # (b P, D), character-major
+    for h in range(1, H + 1):
+        frames.append(check_finite(cm.frame(frames[-1], generator), f + h, who, "beam search"))
+    return torch.stack(frames[1:], dim=1).reshape(b, P, H, D)
 
-    def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D): the best plan's next frame
-        if s["left"] == 0:
-            search(f, cond)
-        j, going = s["j"], s["going"]
-        rows = s["active"][going]
-        x = cond.clone()  # characters that have stopped keep their state
-        x[rows] = s["plan"][going, j]
-        best_scores[rows, f - 1] = s["best_score"][going]
-        now = Future(s["plan_feats"][going, j][:, None, None], xy[rows], heading[rows], rows,
-                     f - 1, cm.fps)  # fmt: skip
-        xy[rows], heading[rows] = now.root_xy[:, 0, 0], now.heading[:, 0, 0]
-        if stop_fn is not None:
-            stop = torch.as_tensor(stop_fn(now), dtype=torch.bool).cpu().reshape(-1)
-            if stop.shape != (len(rows),):
-                raise ValueError(
-                    f"stop_fn must return shape (b={len(rows)},), got {tuple(stop.shape)}"
-                )
-            done_at[rows[stop]] = f
-            s["going"] = going[~stop]
-        s["j"], s["left"] = j + 1, s["left"] - 1
-        return x
 
-    def all_done(f: int) -> bool:  # every character has completed its task
-        return s["left"] == 0 and bool((done_at[s["active"]] >= 0).all())
+def _best(cand: Tensor, future: Future, scores: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Each character's best candidate by the score function's ``scores`` (b, P) of
+    ``future`` (checked): its frames (b, H, D) normalized (from ``cand``, (b, P, H, D)) and
+    in feature units, and its score (b,)."""
+    b, P = future.features.shape[:2]
+    scores = torch.as_tensor(scores).to("cpu", torch.float64)
+    if scores.shape != (b, P):
+        raise ValueError(f"score_fn must return shape (b={b}, P={P}), got {tuple(scores.shape)}")
+    if torch.isnan(scores).any():
+        raise ValueError(f"score_fn returned NaN at frame {future.frame + 1}")
+    best = scores.argmax(dim=1)  # (b,)
+    rows = torch.arange(b)
+    return cand[rows, best.to(cand.device)], future.features[rows, best], scores[rows, best].float()
 
-    frames = autoregress(
-        step, cm.normalize(x0), n_frames, stop=all_done, desc="beam search", progress=progress
-    )  # (B, f, D)
-    out[:, : frames.shape[1]] = frames
-    n_out = n_frames
+
+def _stopped(stop: Tensor, b: int) -> Tensor:
+    """The stop function's answer as a (b,) bool tensor on the CPU (checked)."""
+    stop = torch.as_tensor(stop, dtype=torch.bool).cpu().reshape(-1)
+    if stop.shape != (b,):
+        raise ValueError(f"stop_fn must return shape (b={b},), got {tuple(stop.shape)}")
+    return stop
+
+
+def _motion(
+    cm: Sampler,
+    out: Tensor,
+    best_scores: Tensor,
+    done_at: Tensor,
+    sp: StartPose,
+    batched: bool,
+    info: dict,
+) -> Motion:
+    """The search's Motion from its committed frames ``out`` (B, F, D): a character that
+    completed its task holds its last pose from then on (:func:`_hold`); with one start state
+    the motion ends at completion."""
     feats = cm.denormalize(out)
     for i in torch.nonzero(done_at >= 0)[:, 0].tolist():
         k = int(done_at[i])
         feats[i, k:] = _hold(feats[i, k - 1])
         out[i, k:] = cm.normalize(feats[i, k:])
-    if not batched and done_at[0] >= 0:
-        n_out = int(done_at[0])
-    info = {"score": best_scores[:, :n_out], "done_at": done_at, "pool": P, "horizon": H,
-            "commit": commit}  # fmt: skip
+    n = out.shape[1] if batched or done_at[0] < 0 else int(done_at[0])
+    info = {"score": best_scores[:, :n], "done_at": done_at, **info}
     if not batched:
         info = {**info, "score": info["score"][0], "done_at": int(done_at[0])}
-    return Motion.from_normalized(cm, out[:, :n_out], sp, batched, info, features=feats[:, :n_out])
+    return Motion.from_normalized(cm, out[:, :n], sp, batched, info, features=feats[:, :n])
 
 
 def _hold(frame: Tensor) -> Tensor:
