@@ -84,6 +84,7 @@ from minimdm.motion.features import StartPose, decode_clip
 from minimdm.motion.skeleton import wrap_angle
 from minimdm.rl import load_steering
 from minimdm.rl.rollout import steer
+from minimdm.utils import num_threads
 
 RESULTS = ROOT / "benchmarks" / "results"
 START_FRAME = 20
@@ -244,8 +245,8 @@ def run_camdm(setting: Setting, ckpt, heading, speed, styles, starts, seed, conf
     velocity = speed[..., None] * torch.stack([torch.cos(heading), torch.sin(heading)], -1)
     ctl.reset(starts, style=styles)
     cmd = Commands(velocity, heading.clone(), styles.view(-1, 1).expand(B, N).clone())
-    res = ctl.run(cmd, N, torch.Generator().manual_seed(seed))
-    return res
+    with num_threads(1):  # a few characters: one thread is fastest
+        return ctl.run(cmd, N, torch.Generator().manual_seed(seed))
 
 
 CONTROL_METHODS = ("camdm", "amdm_rl_joystick", "amdm_inpaint_path")
@@ -362,9 +363,10 @@ def transitions(setting: Setting, args) -> None:
         for name, how in TRANSITION_METHODS.items():
             ctl = CAMDMController(setting.camdm, ControlConfig(**how))
             ctl.reset(setting.camdm_starts[src], style=src)
-            res = ctl.run(
-                Commands(velocity, heading, style), N, torch.Generator().manual_seed(seed)
-            )
+            with num_threads(1):  # a few characters: one thread is fastest
+                res = ctl.run(
+                    Commands(velocity, heading, style), N, torch.Generator().manual_seed(seed)
+                )
             f = res.frames
             before_ok = predict_styles(setting.clf, f[:, before - 60 : before])[:, 0] == src
             clips = torch.stack([f[:, before + d : before + d + 60] for d in offsets], 1)

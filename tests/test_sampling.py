@@ -155,12 +155,10 @@ def test_autoregress_feeds_each_frame_back_and_names_frame_and_row():
         seen.append((f, x.clone()))
         return x + f
 
-    out = autoregress(step, torch.zeros(2, 3), 4, first=3)
-    assert [f for f, _ in seen] == [3, 4, 5, 6]
-    assert torch.equal(out[:, :, 0], torch.tensor([[3.0, 7, 12, 18]] * 2))
+    out = autoregress(step, torch.zeros(2, 3), 4)
+    assert [f for f, _ in seen] == [1, 2, 3, 4]
+    assert torch.equal(out[:, :, 0], torch.tensor([[1.0, 3, 6, 10]] * 2))
     assert torch.equal(seen[2][1], out[:, 1])  # the previous frame is the next condition
-    # stop ends the loop early; the result holds the frames made
-    assert autoregress(step, torch.zeros(2, 3), 5, stop=lambda f: f == 2).shape == (2, 2, 3)
 
     def bad(f, x):
         y = x + 1

@@ -7,10 +7,12 @@ A-MDM (DDPM over all T steps, or DDIM over fewer), by the prior of the MVAE-styl
 by the deterministic regressor. Frames are normalized before they enter the model and
 denormalized after; decoded global joint positions come with them.
 
-:func:`autoregress` is the one frame-after-frame loop of the library: random rollouts, beam
-search (:mod:`minimdm.control.beam`), inpainting and inbetweening (:mod:`minimdm.control.inpaint`),
-AAMDM rollouts (:mod:`minimdm.aamdm.eval`) and the Squ-9 chains of the studies all run on it and
-differ only in the per-frame step they hand it. It never returns NaN: a non-finite frame raises
+:func:`autoregress` is the frame-after-frame loop of every technique whose step makes one frame
+from the last: random rollouts, inpainting and inbetweening (:mod:`minimdm.control.inpaint`),
+RL steering (:mod:`minimdm.rl.rollout`), AAMDM rollouts (:mod:`minimdm.aamdm.eval`) and the
+Squ-9 chains of the studies differ only in the per-frame step they hand it. (Beam search and
+CAMDM's controller plan several frames at a time: they are plain loops of their own, with the
+same non-finite check.) It never returns NaN: a non-finite frame raises
 :class:`NonFiniteFrameError` naming the frame and the first bad batch row (which the caller
 names as a character and sample).
 
@@ -120,38 +122,32 @@ def autoregress(
     x0: Tensor,
     n_frames: int,
     *,
-    first: int = 1,
-    stop: Callable[[int], bool] | None = None,
     who: Callable[[int], str] | None = None,
     desc: str = "rollout",
     progress: bool = False,
 ) -> Tensor:
     """The auto-regressive loop (A-MDM §3.1): :math:`x_f = \\mathrm{step}(f, x_{f-1})`.
 
-    Starting from ``x0`` (B, ...), it calls ``step`` for the frames ``f = first, ...,
-    first + n_frames - 1`` and feeds each result back as the next condition, so that
+    Starting from ``x0`` (B, ...), it calls ``step`` for the frames ``f = 1, ..., n_frames``
+    and feeds each result back as the next condition, so that
     :math:`x_f \\sim p_\\theta(x_f | x_{f-1})` when ``step`` samples the model (one reverse
-    diffusion chain per frame, :meth:`Sampler.frame`). Every technique is a step: random sampling,
-    inpainting (a hook), inbetweening (a chain started from a noised keyframe), beam search (a
-    search, then the best plan's frames), AAMDM (GAN draft + polishing + decoding). The loop
-    owns what they share: the tqdm bar, the output buffer and the non-finite check
+    diffusion chain per frame, :meth:`Sampler.frame`). Each technique is a step: random
+    sampling, inpainting (a hook), inbetweening (a chain started from a noised keyframe), RL
+    steering (a residual hook), AAMDM (GAN draft + polishing + decoding). The loop owns what
+    they share: the tqdm bar, the output buffer and the non-finite check
     (:func:`check_finite`, with ``who`` naming a batch row and ``desc`` the technique).
 
     Args:
         step: ``step(f, x_prev) -> x_f``, (B, ...) -> (B, ...); all randomness comes from the
             generator it closes over, consumed in frame order.
-        x0: (B, ...) the condition of the first frame (frame ``first - 1``).
+        x0: (B, ...) the condition of the first frame (frame 0).
         n_frames: frames to generate, >= 1.
-        first: the number of the first generated frame (a beam search's candidates start
-            after the frames already committed).
-        stop: ``stop(f) -> bool`` after frame f: True ends the loop early (beam search when
-            every character has completed its task); the result then holds frames up to f.
         who: names batch row ``b`` in the error (default "batch row b").
         desc: the bar's label and the error's subject.
         progress: show a tqdm bar over frames.
 
     Returns:
-        (B, F, ...) the generated frames :math:`x_{first}..`, float32 on the CPU (the steps'
+        (B, F, ...) the generated frames :math:`x_1..x_F`, float32 on the CPU (the steps'
         own outputs, which stay on the device, are what is fed back).
 
     Raises:
@@ -160,17 +156,12 @@ def autoregress(
     n_frames = check_int("n_frames", n_frames, low=1)
     out: Tensor | None = None  # (B, F, ...) float32, CPU
     x = x0
-    n = 0
-    for i in tqdm(range(n_frames), disable=not progress, desc=desc, unit="frame"):
-        f = first + i
+    for f in tqdm(range(1, n_frames + 1), disable=not progress, desc=desc, unit="frame"):
         x = check_finite(step(f, x), f, who, desc)
         if out is None:
             out = torch.empty(x.shape[0], n_frames, *x.shape[1:], dtype=torch.float32)
-        out[:, i] = x.float().cpu()
-        n = i + 1
-        if stop is not None and stop(f):
-            break
-    return out if n == n_frames else out[:, :n]
+        out[:, f - 1] = x.float().cpu()
+    return out
 
 
 @dataclass

@@ -10,8 +10,8 @@ chapter 9: a conditional auto-regressive motion diffusion model and its run-time
 * :mod:`~minimdm.camdm.sampling`: CFG on past motion (eq. 5) as a step rule of the one reverse
   chain, :func:`minimdm.diffusion.reverse_chain`;
 * :mod:`~minimdm.camdm.trajectory`: the spring, blended and extended (HFTE) trajectories;
-* :mod:`~minimdm.camdm.controller`: the run-time controller on the one rollout loop,
-  :func:`minimdm.amdm.sampling.autoregress`;
+* :mod:`~minimdm.camdm.controller`: the run-time controller, a plain loop over frames that
+  re-plans when it must;
 * :mod:`~minimdm.camdm.classifier`: the style classifier of 60-frame clips and the Fréchet
   distance of its features (``minimdm camdm classifier``).
 """

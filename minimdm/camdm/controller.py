@@ -54,7 +54,6 @@ from minimdm.diffusion import NoiseTape
 from minimdm.motion.data import Clip
 from minimdm.motion.features import Normalizer
 from minimdm.motion.skeleton import Skeleton, rotate_about_z, wrap_angle
-from minimdm.utils import num_threads
 from minimdm.validate import (
     MAX_FEATURE,
     InputError,
@@ -407,19 +406,17 @@ class CAMDMController:
         result = ControlResult(frames=torch.empty(0), positions=torch.empty(0))
         B = self.history.shape[0]
         frames = torch.empty(B, n_frames, self.layout.dim, dtype=torch.float32)  # (B, N, D) CPU
-        n = 1 if self.device.type == "cpu" and B < 64 else None  # small batches: one thread
         parts = (commands.velocity, commands.facing, commands.style)
-        with num_threads(n):
-            for i in range(n_frames):
-                cmd = tuple(c[:, i].to(self.device) for c in parts)  # velocity, facing, style
-                if self._needs_plan(cmd):
-                    self._make_plan(cmd, generator, result, i)
-                frame = self._plan[:, self._applied]  # (B, D)
-                check_finite(frame, i + 1, lambda b: f"character {b}", "camdm control")
-                self._applied += 1
-                self._frame += 1
-                self.history = torch.cat([self.history[:, 1:], frame[:, None]], 1)
-                frames[:, i] = frame.float().cpu()
+        for i in range(n_frames):
+            cmd = tuple(c[:, i].to(self.device) for c in parts)  # velocity, facing, style
+            if self._needs_plan(cmd):
+                self._make_plan(cmd, generator, result, i)
+            frame = self._plan[:, self._applied]  # (B, D)
+            check_finite(frame, i + 1, lambda b: f"character {b}", "camdm control")
+            self._applied += 1
+            self._frame += 1
+            self.history = torch.cat([self.history[:, 1:], frame[:, None]], 1)
+            frames[:, i] = frame.float().cpu()
         result.frames = frames
         result.positions = frame_positions(frames.double(), self.skeleton).float()
         return result
