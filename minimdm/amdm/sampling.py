@@ -40,7 +40,15 @@ from minimdm.checkpoint import (
     load_checkpoint,
     model_spec,
 )
-from minimdm.diffusion import ClipX0, Hook, NoiseSchedule, StepSettings, clip_bounds, run_chain
+from minimdm.diffusion import (
+    ClipX0,
+    Hook,
+    NoiseSchedule,
+    StepSettings,
+    clip_bounds,
+    reverse_chain,
+    start_chain,
+)
 from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, decode, start_state
 from minimdm.motion.skeleton import Skeleton
 from minimdm.validate import (
@@ -300,16 +308,16 @@ class Sampler:
         net = self.net
         if isinstance(net, MLPDenoiser):
             rule, levels = self.settings.chain(net, self.schedule, t_start)
-            return run_chain(
-                rule,
-                levels,
+            x, clamp = start_chain(
                 tuple(cond.shape),
+                self.schedule,
                 cond=cond,
                 generator=generator,
-                hook=hook,
                 x_start=x_start,
                 clip_x0=self.settings.clip_x0,
-            )
+            )  # x at the chain's first level, and the clamp of x0_hat
+            hooks = [] if hook is None else [hook]
+            return reverse_chain(rule, x, levels, cond, generator, hooks, clamp)
         if hook is not None or t_start is not None or x_start is not None:
             raise ValueError(
                 f"hook, t_start and x_start need a diffusion model, got {type(net).__name__}"

@@ -70,7 +70,7 @@ from .samplers import (
     ddpm_sample,
     p_mean_variance,
     p_sample,
-    run_chain,
+    start_chain,
 )
 from .schedule import (
     PREDICTS,
@@ -128,7 +128,7 @@ __all__ = [
     "p_mean_variance",
     "p_sample",
     "StepSettings",
-    "run_chain",
+    "start_chain",
     "ddpm_sample",
     "ddim_sample",
     "ddim_timesteps",

@@ -1,13 +1,13 @@
 """DDPM and DDIM sampling as thin calls of the one reverse chain.
 
 :class:`StepSettings` says which chain a frame runs (DDPM, or DDIM over fewer steps; what the
-denoiser predicts; the clamp) and :func:`run_chain` runs it: the samplers below and
-:meth:`minimdm.amdm.sampling.Sampler.frame` are both calls of these two.
+denoiser predicts; the clamp), :func:`start_chain` draws what it starts from, and
+:func:`~minimdm.diffusion.reverse_chain` runs it: the samplers below and
+:meth:`minimdm.amdm.sampling.Sampler.frame` are calls of these three.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -123,33 +123,29 @@ def _check_t_start(t_start: int | None, T: int) -> int:
     return t_start
 
 
-def run_chain(
-    rule: StepRule,
-    levels: Sequence[int],
+def start_chain(
     shape: tuple[int, ...],
+    schedule: NoiseSchedule,
     *,
     cond: Tensor | None = None,
     generator: torch.Generator | None = None,
-    hook: Hook | None = None,
     x_start: Tensor | None = None,
     clip_x0: ClipX0 = None,
     cond_dim: int | None = None,
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
-) -> Tensor:
-    r"""Check the inputs, draw the start noise (or take ``x_start``) and run
-    :func:`reverse_chain` with ``hook`` on :math:`x_t` and the clamp ``clip_x0`` on
-    :math:`\hat x_0`: what :func:`ddpm_sample`, :func:`ddim_sample` and
-    :meth:`minimdm.amdm.sampling.Sampler.frame` share."""
-    device = device or (cond.device if cond is not None else rule.schedule.device)
+) -> tuple[Tensor, list[X0Hook]]:
+    r"""What a chain starts from: ``(x, x0_hooks)``, the sample at its first level (``x_start``,
+    or standard normal noise) and the clamp ``clip_x0`` of :math:`\hat x_0` as a hook list for
+    :func:`reverse_chain`, after checking ``cond`` and ``x_start`` against ``shape``. What
+    :func:`ddpm_sample`, :func:`ddim_sample` and :meth:`minimdm.amdm.sampling.Sampler.frame`
+    share before the chain runs."""
+    device = device or (cond.device if cond is not None else schedule.device)
     _check_inputs(shape, cond, cond_dim, x_start)
-    clamp = clamp_hook(clip_x0, shape[-1], device, dtype)
+    clamp = _x0_hooks(clip_x0, shape[-1], device, dtype)
     if x_start is not None:
-        x = x_start.to(device=device, dtype=dtype)
-    else:
-        x = gaussian(shape, generator, device, dtype)
-    hooks = [] if hook is None else [hook]
-    return reverse_chain(rule, x, levels, cond, generator, hooks, [] if clamp is None else [clamp])
+        return x_start.to(device=device, dtype=dtype), clamp
+    return gaussian(shape, generator, device, dtype), clamp
 
 
 def ddpm_sample(
@@ -185,19 +181,9 @@ def ddpm_sample(
         The clean samples, shape ``shape``.
     """
     rule, levels = StepSettings(None, 1.0, predicts).chain(model, schedule, t_start)
-    return run_chain(
-        rule,
-        levels,
-        shape,
-        cond=cond,
-        generator=generator,
-        hook=hook,
-        x_start=x_start,
-        clip_x0=clip_x0,
-        cond_dim=cond_dim,
-        device=device,
-        dtype=dtype,
-    )
+    start = dict(x_start=x_start, clip_x0=clip_x0, cond_dim=cond_dim, device=device, dtype=dtype)
+    x, clamp = start_chain(shape, schedule, cond=cond, generator=generator, **start)
+    return reverse_chain(rule, x, levels, cond, generator, [] if hook is None else [hook], clamp)
 
 
 def ddim_timesteps(T: int, steps: int, t_start: int | None = None) -> list[int]:
@@ -244,16 +230,6 @@ def ddim_sample(
     """
     rule = DDIMStep(model, schedule, predicts, eta)
     levels = ddim_timesteps(schedule.T, steps or schedule.T, t_start)
-    return run_chain(
-        rule,
-        levels,
-        shape,
-        cond=cond,
-        generator=generator,
-        hook=hook,
-        x_start=x_start,
-        clip_x0=clip_x0,
-        cond_dim=cond_dim,
-        device=device,
-        dtype=dtype,
-    )
+    start = dict(x_start=x_start, clip_x0=clip_x0, cond_dim=cond_dim, device=device, dtype=dtype)
+    x, clamp = start_chain(shape, schedule, cond=cond, generator=generator, **start)
+    return reverse_chain(rule, x, levels, cond, generator, [] if hook is None else [hook], clamp)
