@@ -670,3 +670,18 @@ def test_the_shipped_checkpoints_load_and_record_their_command():
     )
     assert cls.metadata["command"].startswith("minimdm camdm classifier configs/")
     assert cls.metadata["heldout_accuracy"] > 0.5
+
+
+def test_mirror_adds_every_take_reflected_with_its_style():
+    sides = ("Hips", "Spine", "Leg_L", "Leg_R")
+    clips = [walker("big", names=sides), walker("small", names=sides, speed=0.02)]
+    plain = data_from_clips(clips, tiny_config())
+    mirrored = data_from_clips(clips, tiny_config(mirror=True))
+    assert len(mirrored.bank) == 2 * len(plain.bank)
+    assert mirrored.clip_names == plain.clip_names + [f"{n}~mirror" for n in plain.clip_names]
+    assert mirrored.layout.styles == plain.layout.styles  # a reflected take keeps its style
+    idx = torch.arange(len(plain.bank))
+    w, s = plain.bank.batch(idx, plain.skeleton.lateral_axis)
+    wm, sm = mirrored.bank.batch(idx + len(plain.bank), plain.skeleton.lateral_axis)
+    assert torch.equal(s, sm)
+    assert not torch.allclose(w, wm)  # the legs swap: the mirrored windows are other frames

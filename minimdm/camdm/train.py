@@ -40,6 +40,7 @@ from minimdm.checkpoint import Checkpoint, CheckpointMismatchError, load_checkpo
 from minimdm.diffusion import NoiseSchedule, diffusion_loss
 from minimdm.files import RunLock
 from minimdm.motion.features import Normalizer
+from minimdm.motion.mirror import mirror_clips
 from minimdm.motion.skeleton import Skeleton
 from minimdm.nn import cosine_lr
 from minimdm.training import Recipe, StepOut, start_training, train_loop
@@ -116,9 +117,11 @@ def prepare_data(config: CAMDMTrainConfig) -> TrainData:
 def data_from_clips(
     clips: list, config: CAMDMTrainConfig, heldout: list | None = None
 ) -> TrainData:
-    """Windows and normalizers (fitted on unsmoothed trajectories) from labelled clips; the
-    styles are the clips' ``labels["style"]``, sorted; ``heldout`` clips of known styles give
-    the held-out loss."""
+    """Windows and normalizers (fitted on unsmoothed trajectories) from labelled clips (and
+    their mirror images with ``config.mirror``); the styles are the clips' ``labels["style"]``,
+    sorted; ``heldout`` clips of known styles give the held-out loss."""
+    if config.mirror:
+        clips = list(clips) + mirror_clips(clips)
     styles = tuple(sorted({c.labels["style"] for c in clips}))
     skeleton = clips[0].skeleton  # actors' bone lengths differ; the topology does not
     layout = CAMDMLayout(tuple(skeleton.names), styles, config.fps, config.past, config.future)

@@ -97,6 +97,10 @@ class CAMDMTrainConfig:
     contents: list[str] | None = None
     """Only takes of these contents (None: the locomotion contents walk, run, dash, walk-back,
     walk-left, walk-right)."""
+    mirror: bool = False
+    """Also train on every take reflected left/right (:mod:`minimdm.motion.mirror`): twice the
+    windows, and every turn in both directions. A take keeps its style; held-out takes are not
+    mirrored."""
     device: str = "cpu"
     """'cpu' or 'cuda'."""
     config_file: str | None = None
