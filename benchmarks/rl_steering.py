@@ -49,6 +49,7 @@ import minimdm
 from minimdm import control as C
 from minimdm.amdm import evaluation
 from minimdm.motion import metrics
+from minimdm.motion.skeleton import wrap_angle
 from minimdm.rl import load_steering, procedural_paths
 from minimdm.rl.rollout import steer
 from minimdm.rl.train import load_config, train_policy
@@ -307,7 +308,7 @@ def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0
 
     def act(env) -> torch.Tensor:
         task, ch = env.task, env.ch
-        err = torch.remainder(task.goal_heading - ch.heading + math.pi, 2 * math.pi) - math.pi
+        err = wrap_angle(task.goal_heading - ch.heading, include_pi=False)
         facing = torch.stack([torch.cos(ch.heading), torch.sin(ch.heading)], -1)
         forward = (ch.velocity * facing).sum(-1)
         a = torch.zeros(env.num_envs, env.single_action_space.shape[0])

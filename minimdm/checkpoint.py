@@ -650,13 +650,15 @@ def resume_training(
     generator: torch.Generator,
     ema: Any = None,
     resumable: Iterable[str] = (),
+    defaults: dict | None = None,
 ) -> tuple[int, float]:
     """Continue an interrupted training run from ``out_dir``'s training state, if it has one.
 
     The saved run's config must equal ``config`` except for the ``resumable`` keys (budgets,
     intervals, device): resuming with another model or learning rate would mix two runs, so it
-    raises, naming each difference. Loads the model, the optimizer, the EMA copy (if given) and
-    the batch generator in place.
+    raises, naming each difference. A key the saved config lacks (a field added since the run
+    started) counts as its value in ``defaults``. Loads the model, the optimizer, the EMA copy
+    (if given) and the batch generator in place.
 
     Returns:
         ``(step, seconds)``: the step to continue from and the training time already spent,
@@ -666,7 +668,7 @@ def resume_training(
     if not paths.train.exists():
         return 0, 0.0
     meta, state = load_train_state(out_dir)
-    saved = meta.get("config", {})
+    saved = {**{k: v for k, v in (defaults or {}).items() if k in config}, **meta.get("config", {})}
     keys = sorted((set(saved) | set(config)) - set(resumable))
     diff = [
         f"{k}: {saved.get(k)!r} vs {config.get(k)!r}" for k in keys if saved.get(k) != config.get(k)

@@ -117,7 +117,14 @@ def start_training(
     state = TrainState(model, ema, opt, generator.manual_seed(config.seed))
     if resume:
         state.step, state.prior_seconds = resume_training(
-            out_dir, asdict(config), model, opt, state.generator, ema, resumable=resumable
+            out_dir,
+            asdict(config),
+            model,
+            opt,
+            state.generator,
+            ema,
+            resumable=resumable,
+            defaults=asdict(type(config)()),  # a field added since the run started: its default
         )
         if state.step:
             state.segments = list(load_train_state(out_dir)[0].get("segments", []))
@@ -235,6 +242,7 @@ def train_loop(
                 bar.set_postfix(loss=f"{sums['loss'] / n:.4f}", **_short(out.status))
                 sums, n = {}, 0
             if last or (config.eval_interval and step % config.eval_interval == 0):
+                state.net.eval()  # no dropout while it is measured (the EMA copy always is)
                 metrics = recipe.evaluate(state.net, step)
                 state.model.train()
                 log({"step": step, **metrics})

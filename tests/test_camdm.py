@@ -685,3 +685,29 @@ def test_mirror_adds_every_take_reflected_with_its_style():
     wm, sm = mirrored.bank.batch(idx + len(plain.bank), plain.skeleton.lateral_axis)
     assert torch.equal(s, sm)
     assert not torch.allclose(w, wm)  # the legs swap: the mirrored windows are other frames
+
+
+def test_a_run_saved_before_a_field_existed_resumes_when_the_field_keeps_its_default(
+    tiny, tmp_path
+):
+    """A config field added after a run started (here ``mirror``) is missing from its saved
+    config: resuming counts it as the field's default, and refuses any other value, naming it."""
+    import json
+
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    _, data = tiny
+    config = tiny_config(total_steps=20, ckpt_interval=10)
+    train_camdm(config, tmp_path, data=data, progress=False)
+    state = tmp_path / "model.train.safetensors"
+    with safe_open(state, "pt") as f:
+        header, tensors = f.metadata(), {k: f.get_tensor(k) for k in f.keys()}
+    meta = json.loads(header["minimdm"])
+    del meta["config"]["mirror"]  # as a run saved before the field existed
+    save_file(tensors, state, metadata={**header, "minimdm": json.dumps(meta)})
+    longer = dict(total_steps=30, ckpt_interval=10)
+    with pytest.raises(ValueError, match=r"mirror: False vs True"):
+        train_camdm(tiny_config(**longer, mirror=True), tmp_path, data=data, progress=False)
+    ckpt = train_camdm(tiny_config(**longer), tmp_path, data=data, progress=False)
+    assert ckpt.step == 30

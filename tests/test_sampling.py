@@ -8,6 +8,7 @@ from minimdm.amdm.sampling import NonFiniteFrameError, Sampler, autoregress, rol
 from minimdm.checkpoint import load_checkpoint, save_checkpoint
 from minimdm.diffusion import ddim_sample, ddpm_sample
 from minimdm.motion.features import Normalizer, StartPose, decode
+from minimdm.validate import InputError
 
 J = 2
 D = 3 + 12 * J  # the A-MDM frame of a 2-joint skeleton
@@ -208,3 +209,13 @@ def test_sampler_passes_clip_x0_through_unchanged(tmp_path):
     s = Sampler.load(load_checkpoint(tmp_path / "m"))
     assert s.settings.clip_x0 == clip and s.settings.predicts == "x0"  # from the network
     assert s.schedule.T == 4 and s.normalizer is None and s.layout is None
+
+
+def test_a_sampler_given_again_refuses_new_settings_and_names_them(amdm_ckpt):
+    ck, _ = amdm_ckpt
+    sampler = Sampler.load(ck, steps=3)
+    assert Sampler.load(sampler) is sampler
+    with pytest.raises(InputError, match=r"Sampler.*steps, eta cannot be given again"):
+        rollout(sampler, init_states(), 2, steps=2, eta=0.0)
+    with pytest.raises(InputError, match=r"clip_x0"):
+        Sampler.load(sampler, clip_x0=None)

@@ -58,6 +58,7 @@ from minimdm.diffusion import (
     clamp_hook,
     clip_bounds,
     gaussian,
+    hook_list,
     q_posterior_sample,
     q_sample,
     reverse_chain,
@@ -455,5 +456,4 @@ def aamdm_sample(
     if guide is not None:
         x0_hooks.insert(0, guide.x0_hook(schedule))
     levels = range(T - 1, (t_low if gan_only else 0) - 1, -1)
-    hooks = [] if hook is None else [hook]
-    return reverse_chain(rule, x, levels, cond, generator, hooks, x0_hooks, count)
+    return reverse_chain(rule, x, levels, cond, generator, hook_list(hook), x0_hooks, count)

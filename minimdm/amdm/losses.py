@@ -308,7 +308,7 @@ def _draw(
     was_training = net.training
     net.eval()
     try:
-        settings = StepSettings(min(steps, schedule.T), 1.0, predicts, bounds)
+        settings = StepSettings(steps=min(steps, schedule.T), predicts=predicts, clip_x0=bounds)
         return Sampler(net, schedule=schedule, settings=settings).frame(cond, generator)
     finally:
         net.train(was_training)

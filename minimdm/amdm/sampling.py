@@ -46,6 +46,7 @@ from minimdm.diffusion import (
     NoiseSchedule,
     StepSettings,
     clip_bounds,
+    hook_list,
     reverse_chain,
     start_chain,
 )
@@ -214,27 +215,42 @@ class Sampler:
         eta: float = 1.0,
         noise: float | Tensor = 0.0,
         device: torch.device | str | None = None,
-        name: str = "model",
     ) -> Sampler:
         """A sampler from a Checkpoint, a checkpoint path or a bare network (a Sampler is
-        returned as it is).
+        returned as it is, and refuses overrides: they belong to the call that made it).
 
         From a checkpoint, the normalizer, schedule, ``predicts``, ``clip_x0``, layout and
         skeleton come from its metadata; explicit arguments win. ``clip_x0="checkpoint"`` is
         the clamp the model was trained with (none for a bare network). A bare denoiser needs
         ``schedule``. ``noise`` (regressors only) turns the deterministic MSE baseline into a
         Gaussian :math:`\\mathcal N(f(x_{f-1}), \\sigma^2 I)`, the likelihood MSE training fits,
-        so that its samples can differ. ``name`` names ``model`` in error messages.
+        so that its samples can differ.
         """
         if isinstance(model, Sampler):
+            given = {
+                "normalizer": normalizer is not None,
+                "schedule": schedule is not None,
+                "predicts": predicts is not None,
+                "clip_x0": not _from_checkpoint(clip_x0),
+                "steps": steps is not None,
+                "eta": eta != 1.0,
+                "noise": isinstance(noise, Tensor) or noise != 0.0,
+                "device": device is not None,
+            }
+            given = [k for k, v in given.items() if v]
+            if given:
+                raise InputError(
+                    f"model is a Sampler: its settings are fixed, so {', '.join(given)} cannot "
+                    "be given again (pass the checkpoint to change them)"
+                )
             return model
         device = check_device("device", device)
         if steps is not None:
             steps = check_int("steps", steps, low=1)
         eta = check_number("eta", eta, low=0.0)
-        ckpt = _checkpoint(model, device, name)
+        ckpt = _checkpoint(model, device)
         net = ckpt.model if ckpt is not None else model
-        _check_kind(net, ckpt, name)
+        _check_kind(net, ckpt)
         layout = skeleton = None
         if ckpt is not None:
             meta = ckpt.diffusion
@@ -261,7 +277,7 @@ class Sampler:
                 raise InputError(f"steps must lie in [1, T={schedule.T}], got {steps}")
         if isinstance(noise, Tensor) and noise.numel() > 1:
             noise = noise.to(dev)
-        settings = StepSettings(steps, eta, predicts or "eps", clip_x0)
+        settings = StepSettings(steps=steps, eta=eta, predicts=predicts or "eps", clip_x0=clip_x0)
         return cls(net, normalizer, schedule, settings, noise, layout, skeleton, ckpt)
 
     @property
@@ -316,8 +332,7 @@ class Sampler:
                 x_start=x_start,
                 clip_x0=self.settings.clip_x0,
             )  # x at the chain's first level, and the clamp of x0_hat
-            hooks = [] if hook is None else [hook]
-            return reverse_chain(rule, x, levels, cond, generator, hooks, clamp)
+            return reverse_chain(rule, x, levels, cond, generator, hook_list(hook), clamp)
         if hook is not None or t_start is not None or x_start is not None:
             raise ValueError(
                 f"hook, t_start and x_start need a diffusion model, got {type(net).__name__}"
@@ -339,7 +354,7 @@ def _x_dim(net: nn.Module) -> int:
     return int(getattr(getattr(net, "config", None), "x_dim", None) or net.x_dim)
 
 
-def _checkpoint(model: Any, device, name: str) -> Checkpoint | None:
+def _checkpoint(model: Any, device) -> Checkpoint | None:
     """The checkpoint ``model`` is or names (loaded on ``device``), or None for a network."""
     if isinstance(model, (str, os.PathLike)):
         return load_checkpoint(model, device=device or "cpu")
@@ -348,16 +363,16 @@ def _checkpoint(model: Any, device, name: str) -> Checkpoint | None:
     if isinstance(model, nn.Module):
         return None
     raise InputTypeError(
-        f"{name} must be a Checkpoint, a checkpoint path, an nn.Module or a Sampler, "
+        "model must be a Checkpoint, a checkpoint path, an nn.Module or a Sampler, "
         f"got {type(model).__name__}"
     )
 
 
-def _check_kind(net: nn.Module, ckpt: Checkpoint | None, name: str) -> None:
+def _check_kind(net: nn.Module, ckpt: Checkpoint | None) -> None:
     if not isinstance(net, (MLPDenoiser, MVAE, MLPRegressor)):
         where = f"checkpoint {ckpt.paths.weights} holds" if ckpt is not None else "got"
         raise InputError(
-            f"{name} must be an A-MDM denoiser, an MVAE or an MSE regressor "
+            "model must be an A-MDM denoiser, an MVAE or an MSE regressor "
             f"(kinds amdm, mvae, mse); {where} a {type(net).__name__}"
             + (f" (kind {ckpt.kind!r})" if ckpt is not None else "")
         )

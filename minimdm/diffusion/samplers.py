@@ -27,6 +27,11 @@ from .schedule import (
 )
 
 
+def hook_list(hook: Hook | None) -> list[Hook]:
+    """The chain's hook list for one optional hook."""
+    return [] if hook is None else [hook]
+
+
 def _x0_hooks(clip_x0: ClipX0, dim: int, device, dtype) -> list[X0Hook]:
     h = clamp_hook(clip_x0, dim, device, dtype)
     return [] if h is None else [h]
@@ -87,16 +92,26 @@ class StepSettings:
     predicts: str = "eps"
     clip_x0: ClipX0 = None
 
+    def is_ddpm(self, T: int) -> bool:
+        """Whether a chain takes all ``T`` levels one at a time (DDPM) rather than DDIM's."""
+        return self.steps is None or self.steps == T
+
+    def levels(self, T: int, t_start: int | None = None) -> list[int]:
+        """The levels of one chain of a ``T``-level schedule, started at ``t_start`` (default
+        T - 1): every level below it for DDPM, the DDIM grid (:func:`ddim_timesteps`)."""
+        if self.is_ddpm(T):
+            return list(range(_check_t_start(t_start, T), -1, -1))
+        return ddim_timesteps(T, self.steps, t_start)
+
     def chain(
         self, model: Denoiser, schedule: NoiseSchedule, t_start: int | None = None
     ) -> tuple[StepRule, list[int]]:
         """The step rule and the levels of one chain, started at ``t_start`` (default T - 1)."""
-        T = schedule.T
-        if self.steps is None or self.steps == T:
-            levels = list(range(_check_t_start(t_start, T), -1, -1))
-            return DDPMStep(model, schedule, self.predicts), levels
-        rule = DDIMStep(model, schedule, self.predicts, self.eta)
-        return rule, ddim_timesteps(T, self.steps, t_start)
+        if self.is_ddpm(schedule.T):
+            rule = DDPMStep(model, schedule, self.predicts)
+        else:
+            rule = DDIMStep(model, schedule, self.predicts, self.eta)
+        return rule, self.levels(schedule.T, t_start)
 
 
 def _check_inputs(
@@ -180,10 +195,19 @@ def ddpm_sample(
     Returns:
         The clean samples, shape ``shape``.
     """
-    rule, levels = StepSettings(None, 1.0, predicts).chain(model, schedule, t_start)
-    start = dict(x_start=x_start, clip_x0=clip_x0, cond_dim=cond_dim, device=device, dtype=dtype)
-    x, clamp = start_chain(shape, schedule, cond=cond, generator=generator, **start)
-    return reverse_chain(rule, x, levels, cond, generator, [] if hook is None else [hook], clamp)
+    rule, levels = StepSettings(steps=None, predicts=predicts).chain(model, schedule, t_start)
+    x, clamp = start_chain(
+        shape,
+        schedule,
+        cond=cond,
+        generator=generator,
+        x_start=x_start,
+        clip_x0=clip_x0,
+        cond_dim=cond_dim,
+        device=device,
+        dtype=dtype,
+    )
+    return reverse_chain(rule, x, levels, cond, generator, hook_list(hook), clamp)
 
 
 def ddim_timesteps(T: int, steps: int, t_start: int | None = None) -> list[int]:
@@ -230,6 +254,15 @@ def ddim_sample(
     """
     rule = DDIMStep(model, schedule, predicts, eta)
     levels = ddim_timesteps(schedule.T, steps or schedule.T, t_start)
-    start = dict(x_start=x_start, clip_x0=clip_x0, cond_dim=cond_dim, device=device, dtype=dtype)
-    x, clamp = start_chain(shape, schedule, cond=cond, generator=generator, **start)
-    return reverse_chain(rule, x, levels, cond, generator, [] if hook is None else [hook], clamp)
+    x, clamp = start_chain(
+        shape,
+        schedule,
+        cond=cond,
+        generator=generator,
+        x_start=x_start,
+        clip_x0=clip_x0,
+        cond_dim=cond_dim,
+        device=device,
+        dtype=dtype,
+    )
+    return reverse_chain(rule, x, levels, cond, generator, hook_list(hook), clamp)

@@ -237,12 +237,12 @@ def _schedule_dict(schedule) -> dict[str, Any]:
 def _amdm_description(cm) -> dict[str, Any]:
     """The sampler, schedule and normalizer of an A-MDM :class:`Sampler`."""
     T = cm.schedule.T
-    ddpm = cm.settings.steps in (None, T)
+    ddpm = cm.settings.is_ddpm(T)
     clip = cm.settings.clip_x0
     return {
         "sampler": {
             "name": "ddpm" if ddpm else "ddim",
-            "levels": cm.settings.chain(cm.net, cm.schedule)[1],
+            "levels": cm.settings.levels(T),
             "eta": None if ddpm else cm.settings.eta,
             "predicts": cm.settings.predicts,
             "clip_x0": clip.tolist() if isinstance(clip, Tensor) else clip,

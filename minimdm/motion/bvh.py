@@ -165,7 +165,8 @@ def _skip_end_site(words: _Words) -> None:
     words.keyword("Site")
     words.take("'{'", lambda w: w == "{")
     words.keyword("OFFSET")
-    [words.number("an OFFSET number") for _ in range(3)]
+    for _ in range(3):
+        words.number("an OFFSET number")
     words.take("'}'", lambda w: w == "}")
 
 

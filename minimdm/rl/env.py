@@ -103,7 +103,7 @@ class ResidualSteerer(Steerer):
         self.idx = feature_indices(cm.layout, features) if features != "all" else None
         self.per_step = len(self.idx) if self.idx is not None else cm.dim
         self.action_dim = schedule.n_residuals * self.per_step
-        self.chain = cm.settings.chain(cm.net, cm.schedule)[1]  # the levels of a frame's chain
+        self.chain = cm.settings.levels(cm.schedule.T)  # the levels of a frame's chain
 
     def __call__(self, cond, actions, generator):
         hook = residual_hook(self.schedule, actions, self.chain, self.idx)
