@@ -201,7 +201,7 @@ class Setting:
         ctl = CAMDMController(self.camdm)
         self.layout, self.skeleton = ctl.layout, ctl.skeleton
         self.styles = list(self.layout.styles)
-        self.clf = load_classifier(ROOT / "checkpoints" / "camdm_classifier", self.styles)
+        self.clf = load_classifier(Path(args.classifier), self.styles)
         train = load_clips("bandai-namco-1", "train", FPS, None)
         test = load_clips("bandai-namco-1", "test", FPS, None)
         by_name = {c.name: c for c in train + test}
@@ -578,6 +578,11 @@ def main() -> None:
         help="control: the methods to run (the A-MDM ones do not depend on the CAMDM model)",
     )
     p.add_argument("--rl-joystick", default="rl_joystick")
+    p.add_argument(
+        "--classifier",
+        default=str(ROOT / "checkpoints" / "camdm_classifier"),
+        help="the style classifier that scores style accuracy and FD",
+    )
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--commands", type=int, default=3)
     p.add_argument("--frames", type=int, default=480)

@@ -35,6 +35,7 @@ from minimdm.checkpoint import (
 )
 from minimdm.files import RunLock, atomic_write
 from minimdm.motion.features import Normalizer, encode_motion
+from minimdm.motion.mirror import mirror_clips
 from minimdm.motion.skeleton import Skeleton, forward_kinematics
 from minimdm.nn import cosine_lr, optimizer_step, set_lr
 from minimdm.utils import num_threads as threads
@@ -84,6 +85,10 @@ class ClassifierConfig:
     """The labelled corpus."""
     contents: list[str] | None = None
     """Contents of the takes (None: locomotion, as CAMDM's)."""
+    mirror: bool = False
+    """Also learn from every training take reflected left/right (:mod:`minimdm.motion.mirror`),
+    so that a mirrored walk is judged by its style, not by its side; the held-out accuracy is
+    still measured on the takes as recorded."""
     config_file: str | None = None
     """The file this config came from."""
 
@@ -185,6 +190,7 @@ def train_classifier(
     out_dir = Path(check_output_dir("out_dir", out_dir))
     with threads(num_threads), RunLock(out_dir, (metadata or {}).get("command")):  # one run
         train = load_clips(config.corpus, "train", config.fps, config.contents)
+        train = train + mirror_clips(train) if config.mirror else train
         test = load_clips(config.corpus, "test", config.fps, config.contents)
         styles = sorted({c.labels["style"] for c in train})
         skeleton = train[0].skeleton
