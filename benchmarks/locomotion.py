@@ -30,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long-seconds", type=float, default=60.0, help="staying power (60 s)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
+    ap.add_argument("--eta", type=float, default=1.0, help="DDIM stochasticity with --steps")
     ap.add_argument("--corpus", default=None, help="labelled corpus (default: the checkpoint's)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--takes", action="store_true", help="also print one line per take")
@@ -43,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         long_seconds=args.long_seconds,
         seed=args.seed,
         steps=args.steps,
+        eta=args.eta,
         corpus=args.corpus,
     )
     hw = hardware()

@@ -57,6 +57,16 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
     assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])
 
 
+def test_eta_reaches_the_ddim_sampler(ckpt):
+    """With DDIM steps, ``eta`` changes the draws (eta 0 adds no noise after the first level),
+    and the same protocol draws the same futures again."""
+    p = LocomotionProtocol(n_samples=2, seconds=1.0, long_seconds=0.0, tail_seconds=0.5, steps=2)
+    rows = [
+        locomotion_report(ckpt, dataclasses.replace(p, eta=eta))["all"] for eta in (0.0, 1.0, 0.0)
+    ]
+    assert rows[0] == rows[2] and rows[0]["APD"] != rows[1]["APD"]
+
+
 def test_a_checkpoint_of_another_skeleton_or_rate_is_named(ckpt):
     p = LocomotionProtocol(n_samples=1, seconds=1.0, long_seconds=0.0, tail_seconds=0.5)
     layout = dict(ckpt.feature_layout)

@@ -79,6 +79,8 @@ class LocomotionProtocol:
     """Seeds the sampler."""
     steps: int | None = None
     """Denoising steps per frame (None: the model's own)."""
+    eta: float = 1.0
+    """DDIM stochasticity when ``steps`` is below T (1: as DDPM; 0: deterministic steps)."""
     corpus: str | None = None
     """The labelled corpus whose test takes start the rollouts (None: the checkpoint's)."""
 
@@ -176,7 +178,14 @@ def _generate(ckpt: Checkpoint, takes: MotionDataset, p: LocomotionProtocol, n_f
 
         init = torch.stack([encode(c)[f0 - 1] for c in takes]).float()  # (C, D)
         r = rollout(
-            ckpt, init, n_frames, p.n_samples, steps=p.steps, generator=gen, start_pose=start
+            ckpt,
+            init,
+            n_frames,
+            p.n_samples,
+            steps=p.steps,
+            eta=p.eta,
+            generator=gen,
+            start_pose=start,
         )
     return r.features.double(), r.positions.double()
 
