@@ -42,7 +42,7 @@ from minimdm.diffusion import (
 )
 from minimdm.toy.squ9 import Squ9, squ9_metrics, train_denoiser
 
-KINDS = ["linear", "cosine"]
+KINDS = ["linear", "cosine", "karras"]
 TS = [1, 2, 5, 40, 1000]
 
 
@@ -92,6 +92,24 @@ def test_schedule_properties(kind, T):
     )
     # the last level is close to pure noise for every T (the sampler starts from N(0, I))
     assert ac[-1] < 0.02
+
+
+def test_karras_levels_run_from_the_clean_end_to_pure_noise():
+    """Karras et al. 2022 eq. 5 as VP levels: the noise-to-signal ratios run from
+    KARRAS_SIGMAS[0] to [1], crowded at the clean end (rho = 7), where the cosine schedule of
+    the same T starts 9 times noisier."""
+    from minimdm.diffusion.schedule import KARRAS_RHO, KARRAS_SIGMAS
+
+    ac = NoiseSchedule("karras", 20).alphas_cumprod.double()
+    sigma = ((1 - ac) / ac).sqrt()
+    ends = torch.tensor(KARRAS_SIGMAS, dtype=torch.float64)
+    torch.testing.assert_close(sigma[[0, -1]], ends, rtol=1e-3, atol=0)  # stored as float32
+    root = sigma ** (1 / KARRAS_RHO)  # evenly spaced in sigma^(1/rho)
+    torch.testing.assert_close(root.diff(), root.diff().mean().expand(19), rtol=1e-3, atol=0)
+    cosine = NoiseSchedule("cosine", 20).alphas_cumprod.double()
+    assert ((1 - cosine[0]) / cosine[0]).sqrt() > 8 * sigma[0]
+    with pytest.raises(ValueError, match="'karras'"):
+        NoiseSchedule("sigmoid", 20)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -95,12 +95,24 @@ def check_finite(name: str, x: Tensor) -> None:
         raise ValueError(f"{name} must be finite, but it holds NaN/Inf (first at index {bad})")
 
 
+KARRAS_SIGMAS = (0.01, 10.0)
+"""The ``"karras"`` schedule's least and most noisy levels, as noise-to-signal ratios
+:math:`\\sigma = \\sqrt{1 - \\bar\\alpha} / \\sqrt{\\bar\\alpha}` of normalized features."""
+KARRAS_RHO = 7.0
+"""How strongly the ``"karras"`` levels crowd towards the clean end (Karras et al. 2022: 7)."""
+
+
 class NoiseSchedule:
     """The variance schedule :math:`\\beta_1..\\beta_T` and every buffer derived from it.
 
     Args:
-        kind: ``"linear"`` (Ho et al. 2020, betas from 1e-4 to 0.02 rescaled to T steps) or
-            ``"cosine"`` (Nichol & Dhariwal 2021, clipped at 0.999).
+        kind: ``"linear"`` (Ho et al. 2020, betas from 1e-4 to 0.02 rescaled to T steps),
+            ``"cosine"`` (Nichol & Dhariwal 2021, clipped at 0.999), or ``"karras"``: the noise
+            levels of Karras et al. 2022 eq. 5 (:math:`\\rho = 7`) from :data:`KARRAS_SIGMAS`
+            ``[0]`` to ``[1]`` as variance-preserving levels,
+            :math:`\\bar\\alpha_t = 1 / (1 + \\sigma_t^2)`. It packs more levels near the
+            clean end: at T = 20 the least noisy level keeps 0.01 of a feature's spread, where
+            the cosine schedule's keeps 0.09.
         T: number of diffusion steps, 1 to 1000 (more is allowed; no step is hard-coded).
         betas: explicit betas, overriding ``kind``; each must lie in (0, 1).
         device: where the buffers live.
@@ -110,7 +122,7 @@ class NoiseSchedule:
 
     def __init__(
         self,
-        kind: Literal["linear", "cosine"] = "cosine",
+        kind: Literal["linear", "cosine", "karras"] = "cosine",
         T: int = 40,
         betas: Tensor | None = None,
         device: torch.device | str = "cpu",
@@ -170,7 +182,14 @@ class NoiseSchedule:
             f = torch.cos((steps + s) / (1 + s) * math.pi / 2) ** 2
             betas = 1 - f[1:] / f[:-1]
             return betas.clamp(1e-5, 0.999)
-        raise ValueError(f"kind must be 'linear' or 'cosine', got {kind!r}")
+        if kind == "karras":  # Karras et al. 2022 eq. 5, least noisy level first
+            lo, hi = (x ** (1 / KARRAS_RHO) for x in KARRAS_SIGMAS)
+            i = torch.arange(T, dtype=torch.float64) / (T - 1) if T > 1 else torch.ones(1)
+            sigma = (lo + i * (hi - lo)) ** KARRAS_RHO
+            ac = 1 / (1 + sigma**2)
+            betas = 1 - ac / torch.cat([torch.ones(1, dtype=torch.float64), ac[:-1]])
+            return betas.clamp(1e-5, 0.999)
+        raise ValueError(f"kind must be 'linear', 'cosine' or 'karras', got {kind!r}")
 
     @property
     def device(self) -> torch.device:
