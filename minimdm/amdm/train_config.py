@@ -44,7 +44,8 @@ class TrainConfig:
     T: int = 40
     """Number of diffusion steps (A-MDM paper: 40)."""
     schedule: str = "cosine"
-    """Noise schedule: 'cosine', 'linear' or 'karras' (:class:`~minimdm.diffusion.NoiseSchedule`)."""
+    """Noise schedule: 'cosine', 'linear' or 'karras' (see
+    :class:`~minimdm.diffusion.NoiseSchedule`)."""
     predicts: str = "eps"
     """What the denoiser outputs: 'eps' (A-MDM eq. 3), 'x0' or 'v'."""
     skip_sigma: float = 0.0
