@@ -8,6 +8,9 @@ STAMP  := $(VENV)/.minimdm-installed
 export VTK_DEFAULT_OPENGL_WINDOW := vtkEGLRenderWindow
 export PYVISTA_OFF_SCREEN := true
 export MPLBACKEND := Agg
+# matplotlib caches the paths of its fonts, which live in the venv: one cache per venv, so that
+# another checkout's venv (a clean clone beside this one) cannot leave paths that no longer exist
+export MPLCONFIGDIR ?= $(abspath $(VENV))/mplconfig
 
 # nbval over the chapters. A busy machine must not fail a cell: nbval waits 2000 s for a cell, but
 # only 5 s for its output messages (raised in notebooks/conftest.py) and 60 s for a kernel to start.

@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["num_threads", "format_table"]
+__all__ = ["num_threads", "format_table", "TABLE_WIDTH"]
 
 
 @contextlib.contextmanager
@@ -39,13 +39,23 @@ def _cell(v: Any, digits: int) -> str:
     return str(v)
 
 
+TABLE_WIDTH = 77
+"""Characters of an output line that the book shows unscrolled: its 688-pixel column, less 32 px of
+padding, holds 77 characters of 14-pixel monospace (8.4 px each)."""
+
+
 def format_table(
     rows: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str, Any]],
     columns: Sequence[str] | None = None,
     digits: int = 2,
     first: str = "model",
+    width: int | None = TABLE_WIDTH,
 ) -> str:
     """A fixed-width plain-text table.
+
+    A table wider than ``width`` characters is printed as column groups, one under the other,
+    each repeating the row names, so that no line is wider than ``width`` (unless one column
+    alone is).
 
     Args:
         rows: ``{row name: {column: value}}``, or a list of dicts whose ``first`` key names
@@ -54,6 +64,7 @@ def format_table(
         columns: the columns, in order (default: every key, in order of appearance).
         digits: decimals of floats below 100 (larger ones get one).
         first: the header of the first column (and, for a list, the key that names a row).
+        width: the widest line; None: one block however wide.
     """
     if isinstance(rows, Mapping):
         named = [(str(k), dict(v)) for k, v in rows.items()]
@@ -61,10 +72,25 @@ def format_table(
         named = [(str(r.get(first, "")), {k: v for k, v in r.items() if k != first}) for r in rows]
     if not named:
         raise ValueError("rows must hold at least one row")
+    if width is not None and width < 1:
+        raise ValueError(f"width must be >= 1 or None, got {width}")
     if columns is None:
         columns = list(dict.fromkeys(k for _, r in named for k in r))
-    body = [[name] + [_cell(r.get(c), digits) for c in columns] for name, r in named]
-    head = [first, *columns]
-    widths = [max(len(x) for x in col) for col in zip(head, *body, strict=True)]
-    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
-    return "\n".join([fmt.format(*head)] + [fmt.format(*r) for r in body])
+    cells = {c: [c] + [_cell(r.get(c), digits) for _, r in named] for c in columns}
+    names = [first] + [name for name, _ in named]
+    name_w = max(map(len, names))
+    groups: list[list[str]] = [[]]
+    used = name_w
+    for c in columns:
+        w = 2 + max(map(len, cells[c]))
+        if groups[-1] and width is not None and used + w > width:
+            groups.append([])
+            used = name_w
+        groups[-1].append(c)
+        used += w
+    blocks = []
+    for group in groups:
+        cols = [[x.ljust(name_w) for x in names]]
+        cols += [[x.rjust(max(map(len, cells[c]))) for x in cells[c]] for c in group]
+        blocks.append("\n".join("  ".join(row) for row in zip(*cols, strict=True)))
+    return "\n\n".join(blocks)

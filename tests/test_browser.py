@@ -106,7 +106,14 @@ class Visit:
         self.page = self.context.new_page()
         self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
         self.page.on("pageerror", lambda e: self.errors.append(str(e)))
-        self.page.on("requestfailed", lambda r: self.errors.append(f"{r.failure}: {r.url}"))
+        # a request the browser cancels itself (net::ERR_ABORTED: the favicon of a page it leaves
+        # for the next) is no error; those outside the book fail as net::ERR_FAILED (_route)
+        self.page.on(
+            "requestfailed",
+            lambda r: (
+                "ERR_ABORTED" in (r.failure or "") or self.errors.append(f"{r.failure}: {r.url}")
+            ),
+        )
 
     def _route(self, route):
         url = route.request.url
@@ -153,6 +160,7 @@ def test_two_players_on_one_page(browser, site):
     )
     players = p.locator(".minimdm-player")
     assert players.locator(".mmp-poster").count() == 0  # the posters gave way to the canvases
+    assert not players.locator(".mmp-msg").first.is_visible()  # and so did the still's note
     a, b = (players.nth(i).locator("canvas") for i in (0, 1))
 
     def scrub(i: int, frame: int) -> None:
@@ -273,6 +281,64 @@ def check_players(p, name: str) -> int:
             shot_path = Path(folder) / f"{Path(name).stem}_player{i}.png"
             players.nth(i).screenshot(path=str(shot_path))
     return n
+
+
+# Every output area (text and HTML) that scrolls sideways, and every figure shown below 80% of
+# its own width (a PNG's width attribute, else its pixels), on a chapter page.
+LAYOUT = """() => {
+  const wide = [], small = [];
+  document.querySelectorAll('.cell_output pre, .cell_output .output.text_html').forEach((e) => {
+    if (e.closest('.minimdm-player')) return;
+    if (e.scrollWidth > e.clientWidth + 1) {
+      const line = (e.innerText || '').split('\\n').find((l) => l.trim()) || '';
+      wide.push(`${e.scrollWidth} px > ${e.clientWidth} px: ${line.trim().slice(0, 50)}`);
+    }
+  });
+  document.querySelectorAll('.cell_output img:not(.mmp-poster)').forEach((img) => {
+    const own = Number(img.getAttribute('width')) || img.naturalWidth;
+    const shown = img.getBoundingClientRect().width;
+    if (own && shown < 0.8 * own) small.push(`${Math.round(shown)} of ${own} px: ${img.alt}`);
+  });
+  return { column: document.querySelector('article').clientWidth, wide, small };
+}"""
+
+
+def test_chapter_outputs_fit_the_column(browser, site):
+    """On every chapter page, at a 1280-pixel window (a 688-pixel text column): no output
+    scrolls sideways, no figure is shrunk below 80% of its width, and each player's default
+    camera shows its characters at least about a third of the picture's height (at the first
+    and the middle frame)."""
+    base, html = site
+    pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    v, problems, heights = Visit(browser, base, context), [], {}
+    for name in pages:
+        p = v.open(name)
+        p.wait_for_function("[...document.images].every(i => i.complete)")
+        r = p.evaluate(LAYOUT)
+        assert r["column"] == 752, r["column"]  # the article; its code areas are 688 px
+        problems += [f"{name}: wide output {w}" for w in r["wide"]]
+        problems += [f"{name}: shrunk figure {s}" for s in r["small"]]
+        players = p.locator(".minimdm-player")
+        n = players.count()
+        if n:
+            p.wait_for_function(
+                f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
+                timeout=30_000,
+            )
+        for i in range(n):
+            for at in ("0", "Math.floor(pl.nFrames / 2)"):
+                h = players.nth(i).evaluate(
+                    f"e => {{ const pl = e.minimdmPlayer; pl.setFrame({at}); "
+                    "return pl.bodyHeights(); }"
+                )
+                heights[f"{name} player {i} frame {at[:1]}"] = h
+                if sum(h) / len(h) < 0.3:
+                    problems.append(f"{name}: player {i} shows its characters {h} of its height")
+        v.check_clean()
+    v.context.close()
+    assert len(heights) >= 8, heights
+    assert problems == [], "\n".join(problems)
 
 
 def test_exercise_solutions_are_hidden_until_clicked(browser, site):

@@ -249,6 +249,12 @@ def test_poster_is_a_small_png_and_save_stands_alone(tmp_path):
     page = p.save(tmp_path / "p.html").read_text()
     assert page.startswith("<!DOCTYPE html>") and lib_in(page) is not None
     assert 'class="mmp-poster"' in page
+    # where the script does not run (an untrusted notebook), the still says how to play it;
+    # the script's first act is to hide that note
+    note = re.search(r'<div class="mmp-msg"[^>]*>([^<]*)</div>', page).group(1)
+    assert note == pmod.STILL_NOTE and "Run this cell" in note
+    assert 'querySelector(".mmp-msg").style.display = "none"' in page
+    assert p.payload["follow"] is True  # the camera frames the characters by default
     with pytest.raises(ValueError, match="must end in .html"):
         p.save(tmp_path / "p.png")
 

@@ -24,6 +24,14 @@ def _cells(text: str) -> list[list[str]]:
     return [re.split(r" {2,}", line.strip()) for line in text.splitlines()]
 
 
+def _merged(text: str) -> list[list[str]]:
+    """The cells of a table printed in column groups, joined back into one row per name."""
+    blocks = [_cells(block) for block in text.split("\n\n")]
+    for block in blocks[1:]:
+        assert [row[0] for row in block] == [row[0] for row in blocks[0]]  # the same names
+    return [sum((b[i][1:] for b in blocks[1:]), blocks[0][i]) for i in range(len(blocks[0]))]
+
+
 def test_format_table_cells_pairs_none_strings_and_numbers():
     rows = {
         "A-MDM": {"APD": (9.3347, 0.1579), "FS": 0.2981, "note": "ε model"},
@@ -75,6 +83,37 @@ def test_format_table_lines_are_aligned(rows):
     assert len({len(line) for line in lines}) == 1
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    n_cols=st.integers(1, 14),
+    width=st.integers(20, 120),
+    values=st.lists(st.floats(-1e5, 1e5), min_size=3, max_size=3),
+    header=st.text("abcdefgh", min_size=1, max_size=14),
+)
+def test_format_table_wraps_wide_tables_into_column_groups(n_cols, width, values, header):
+    """No line is wider than ``width`` (unless one column alone is), every group repeats the row
+    names, and the groups read together are the one-block table."""
+    columns = [f"{header}{i}" for i in range(n_cols)]
+    rows = {
+        "A-MDM": {c: (v, 0.5) for c, v in zip(columns, values * n_cols, strict=False)},
+        "MVAE": {c: v for c, v in zip(columns, values[::-1] * n_cols, strict=False)},
+    }
+    text = format_table(rows, width=width)
+    whole = format_table(rows, width=None)
+    assert "\n\n" not in whole
+    assert _merged(text) == _cells(whole)
+    blocks = text.split("\n\n")
+    for block in blocks:
+        lines = block.splitlines()
+        assert len({len(line) for line in lines}) == 1  # aligned within a group
+        if len(_cells(block)[0]) > 2:  # more than one column in it: it fits
+            assert len(lines[0]) <= width
+    if len(whole.splitlines()[0]) <= width:
+        assert text == whole  # a table that fits is printed as one block
+    with pytest.raises(ValueError, match="width must be >= 1"):
+        format_table(rows, width=0)
+
+
 @pytest.mark.skipif(not RESULTS.exists(), reason="no stored benchmark results")
 def test_chapter_4_tables_from_the_stored_rows():
     """The rows of benchmarks/results print in the order of Table 1, ``mean ± std`` per cell."""
@@ -82,7 +121,7 @@ def test_chapter_4_tables_from_the_stored_rows():
 
     records = [json.loads(line) for line in RESULTS.read_text().splitlines()]
     rows = read_results(RESULTS, "table1")
-    cells = _cells(format_table(rows))
+    cells = _merged(format_table(rows))
     head = cells[0][1:]
     assert head == [c for c in TABLE1_COLUMNS if c in head]  # the paper's column order
     for line in cells[1:]:

@@ -200,6 +200,10 @@ def test_filmstrip_scrubber_and_trajectories():
     first = image.value
     slider.value = 5
     assert image.value != first and image.value[:4] == b"\x89PNG"
+    assert (image.width, image.height) == ("64", "48")  # its own size, not the cell's width
+    assert "run the cell" in repr(box) and "PNG" not in box._repr_mimebundle_()["text/plain"]
+    fig = viz.filmstrip(walker(10), PARENTS, n=8)  # 8 frames still fit the book's column
+    assert fig.get_size_inches()[0] <= viz.COLUMN_INCHES and fig.dpi == 100
     fig = viz.plot_trajectories(
         [walker(10), walker(10, y=1.0)], labels=["a", "b"], targets=[[1.0, 0.0], [2.0, 1.0]]
     )

@@ -14,7 +14,8 @@ parent ``-1``) ground projection is the trail, and the camera follows it.
 * :func:`render_frame` renders one still pose to an image array; :func:`filmstrip` puts a row of
   still frames in a matplotlib figure (the static figure beside a widget).
 * :func:`scrubber` is an ipywidgets frame scrubber (Play + slider) for live kernels.
-* :func:`plot_trajectories` draws top-down root paths of several runs, with optional targets.
+* :func:`plot_trajectories` draws top-down root paths of several runs, with optional targets;
+  :func:`book_style` sets matplotlib up for figures that the book's column shows at their size.
 * :func:`player` is a 3D player (three.js) as one HTML output: turn, zoom, play, scrub and
   compare characters, in a live kernel and in the static book alike, offline; its payload
   (:mod:`~minimdm.viz.payload`) stores positions as gzipped int16 codes.
@@ -41,7 +42,7 @@ trails), :mod:`~minimdm.viz.render` (the pyvista and matplotlib renderers),
 # Module state (``_PYVISTA_ERROR``) and ``_PyvistaRenderer`` live in :mod:`.render`: read or
 # patch them there (``viz.render._PYVISTA_ERROR``); a copy here would not follow them.
 from .animation import Animation, animate, render_frame
-from .plots import filmstrip, plot_trajectories, scrubber
+from .plots import COLUMN_INCHES, book_style, filmstrip, plot_trajectories, scrubber
 from .render import _render as _render
 from .scene import GENERATED, PALETTE, REAL, TARGET
 from .scene import _build_scene as _build_scene
@@ -55,6 +56,8 @@ __all__ = [
     "Animation",
     "animate",
     "render_frame",
+    "COLUMN_INCHES",
+    "book_style",
     "filmstrip",
     "scrubber",
     "plot_trajectories",

@@ -380,7 +380,7 @@ def build_payload(
     keyframes: Any = None,
     feet: Any = None,
     contacts: Any = None,
-    follow: bool = False,
+    follow: bool = True,
     view: tuple[float, float] | None = None,
     autoplay: bool = True,
 ) -> dict[str, Any]:

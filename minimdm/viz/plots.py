@@ -1,7 +1,9 @@
-"""Static and interactive views: :func:`filmstrip`, :func:`scrubber`, :func:`plot_trajectories`."""
+"""Static and interactive views: :func:`filmstrip`, :func:`scrubber`, :func:`plot_trajectories`,
+and :func:`book_style`, the figure settings that the book's column shows at their own size."""
 
 from __future__ import annotations
 
+import functools
 import io
 from collections.abc import Sequence
 from typing import Any
@@ -22,6 +24,33 @@ from .scene import (
     _rgb,
     _to_numpy,
 )
+
+COLUMN_INCHES = 6.8
+"""The widest figure, in inches at :func:`book_style`'s 100 dpi, that the book's 688-pixel text
+column shows at its own size; a wider one is shrunk, and its text with it."""
+
+
+def book_style() -> None:
+    """Matplotlib settings for the book's figures: 100 dpi, so that a figure's inches times 100
+    are its pixels on the page; :data:`COLUMN_INCHES` wide by default, with text sized to be read
+    at that size (9-point labels, 8-point ticks and legends). Call it once, after importing
+    pyplot, at the top of a chapter."""
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update(
+        {
+            "figure.dpi": 100,
+            "savefig.dpi": 100,
+            "figure.figsize": (COLUMN_INCHES, 3.0),
+            "font.size": 9,
+            "axes.titlesize": 9,
+            "axes.labelsize": 9,
+            "xtick.labelsize": 8,
+            "ytick.labelsize": 8,
+            "legend.fontsize": 8,
+            "figure.titlesize": 10,
+        }
+    )
 
 
 def filmstrip(
@@ -51,7 +80,8 @@ def filmstrip(
     if labels is not None and len(labels) != len(ms):
         raise ValueError(f"labels has {len(labels)} entries for {len(ms)} motions")
     w, h = _check_size(size)
-    fig = Figure(figsize=(1.6 * n, 1.6 * h / w * len(ms) + 0.3), dpi=120, layout="constrained")
+    cell = min(1.6, COLUMN_INCHES / n)  # inches a frame: the row fits the book's column
+    fig = Figure(figsize=(cell * n, cell * h / w * len(ms) + 0.3), dpi=100, layout="constrained")
     axes = np.asarray(fig.subplots(len(ms), n, squeeze=False))
     scene_options = ("overlay", size, trail, True, targets, motion_fps, view)  # follow: True
     for r, m in enumerate(ms):
@@ -61,9 +91,9 @@ def filmstrip(
             ax = axes[r, k]
             ax.imshow(img)
             ax.set_xticks([]), ax.set_yticks([])
-            ax.set_title(f"t = {f / motion_fps:.2f} s", fontsize=7)
+            ax.set_title(f"t = {f / motion_fps:.2f} s", fontsize=8)
             if k == 0 and labels is not None:
-                ax.set_ylabel(labels[r], fontsize=8)
+                ax.set_ylabel(labels[r], fontsize=9)
     return fig
 
 
@@ -101,7 +131,8 @@ def scrubber(
         buf = io.BytesIO()
         Image.fromarray(img).save(buf, format="png")
         pngs.append(buf.getvalue())
-    image = widgets.Image(value=pngs[0], format="png")
+    w, h = _check_size(size)  # shown at its own size, not stretched to the cell's width
+    image = widgets.Image(value=pngs[0], format="png", width=w, height=h)
     play = widgets.Play(min=0, max=len(pngs) - 1, interval=int(1000 / fps), description="play")
     slider = widgets.IntSlider(min=0, max=len(pngs) - 1, description="frame")
     widgets.jslink((play, "value"), (slider, "value"))
@@ -110,7 +141,21 @@ def scrubber(
         image.value = pngs[change["new"]]
 
     slider.observe(show, names="value")
-    return widgets.VBox([image, widgets.HBox([play, slider])])
+    return _scrubber_box()([image, widgets.HBox([play, slider])])
+
+
+@functools.cache
+def _scrubber_box() -> type:
+    import ipywidgets as widgets
+
+    class Scrubber(widgets.VBox):
+        """A VBox whose text form, which a notebook shows where the widget cannot run (its
+        kernel is gone), is a sentence rather than the repr of every frame's PNG bytes."""
+
+        def __repr__(self) -> str:
+            return "Frame scrubber (a live widget): run the cell to use it."
+
+    return Scrubber
 
 
 def plot_trajectories(

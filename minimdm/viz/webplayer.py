@@ -89,10 +89,18 @@ def _take_embed() -> bool:
     return False
 
 
+STILL_NOTE = (
+    "A still of the middle frame. Run this cell (in a trusted notebook) to play it in 3D: "
+    "drag to turn, scrub the frames."
+)
+"""What a stored player says where its script does not run (an untrusted notebook, a viewer
+without JavaScript); the script hides it."""
+
 _BOOT = """(function () {
   var KEY = %(key)s, ID = %(id)s, LIB = %(lib)s;
   var reg = window.__minimdmPlayer = window.__minimdmPlayer || {};
   var box = document.getElementById(ID);
+  box.querySelector(".mmp-msg").style.display = "none";  // the script runs: no still note
   function say(m) {
     var e = box.querySelector(".mmp-msg"); e.textContent = m; e.style.display = "";
   }
@@ -233,8 +241,8 @@ class Player(HTML):
         return (
             f'<div class="minimdm-player" id="{uid}" style="width:{w}px;max-width:100%">'
             f"{still}"
-            '<div class="mmp-msg" style="display:none;font:12px system-ui,sans-serif;color:#555">'
-            "</div>"
+            '<div class="mmp-msg" style="font:12px system-ui,sans-serif;color:#555">'
+            f"{STILL_NOTE}</div>"
             f'<script type="application/json" class="mmp-data">{safe}</script>'
             f"</div>\n<script>{boot}</script>"
         )
@@ -295,7 +303,7 @@ def player(
     keyframes: Any = None,
     feet: Sequence[str | int] | bool | None = None,
     contacts: Any = None,
-    follow: bool = False,
+    follow: bool = True,
     view: tuple[float, float] | None = None,
     size: tuple[int, int] = (640, 360),
     poster: bool = True,
@@ -331,8 +339,9 @@ def player(
             ground; default the skeleton's ``foot_joints``; ``False`` shows none.
         contacts: a list of one ``(T, n_feet)`` bool array per motion; default: detected (a foot
             within 2.5 cm of its resting height and slower than 0.6 m/s).
-        follow: the camera follows the characters (their root, smoothed over ±1 s); a box under
-            the player switches it.
+        follow: the camera follows the characters (their root, smoothed over ±1 s) and frames
+            their bodies as they are, drawing back as far as characters that part need; False:
+            one view of every frame and all of the path. The box under the player switches.
         view: camera (azimuth, elevation) in degrees, z-up world, as in
             :func:`~minimdm.viz.animate`; default: across the lanes.
         size: (width, height) in pixels; the player shrinks with a narrower page.

@@ -383,31 +383,24 @@ export async function mount(container, payload) {
     for (let g = Math.max(0, f - k); g <= Math.min(T - 1, f + k); g++) { c.add(centres[g]); w++; }
     c.divideScalar(w); c.y = 0.45 * size.y + box.min.y; return c;
   });
-  let spread = 0;
-  motions.forEach((pos, i) => {
-    for (let f = 0; f < T; f++) {
+  // what the follow camera shows at frame f: the characters as they are at f (the camera's
+  // distance is then smoothed over +-1 s), so that it frames their bodies, and draws back only
+  // as far as characters that part (a fast and a slow walker) need
+  const nearBox = (f) => {
+    const b = new THREE.Box3();
+    motions.forEach((pos, i) => {
       const o = frameOffset(i, f);
-      for (let j = 0; j < J; j++) {
-        const dx = pos[o + 3 * j] - smooth[f].x, dz = pos[o + 3 * j + 2] - smooth[f].z;
-        spread = Math.max(spread, Math.hypot(dx, dz));
-      }
-    }
-  });
+      for (let j = 0; j < J; j++) b.expandByPoint(v.fromArray(pos, o + 3 * j));
+    });
+    return b.set(b.min.setY(box.min.y), b.max.setY(box.max.y));
+  };
   const orbit = new Orbit(camera, renderer.domElement, () => requestRender());
   let follow = !!payload.follow;
   const [az, el_] = payload.view.map((d) => (d * Math.PI) / 180);
-  const home = () => {
-    // the payload's azimuth/elevation are in the z-up world; turn them into theta/phi here
-    const dir = toThree([Math.cos(el_) * Math.cos(az), Math.cos(el_) * Math.sin(az), Math.sin(el_)]);
-    orbit.theta = Math.atan2(dir.x, dir.z);
-    orbit.phi = Math.acos(Math.min(Math.max(dir.y, -1), 1));
-    orbit.target.copy(follow ? smooth[frame] : new THREE.Vector3(centre.x, 0.45 * size.y + box.min.y, centre.z));
-    // the nearest camera that shows all of the box (every frame, or the characters' reach
-    // about the followed point): bisect between a sphere's fit, which always shows it, and 0
-    const shown = follow
-      ? new THREE.Box3(new THREE.Vector3(-spread, box.min.y, -spread).add(orbit.target).setY(box.min.y),
-          new THREE.Vector3(spread, 0, spread).add(orbit.target).setY(box.max.y))
-      : box;
+  const fitted = []; // follow: the camera distance that frames each frame's box
+  // the nearest camera that shows all of a box: bisect between a sphere's fit, which always
+  // shows it, and 0
+  const fit = (shown) => {
     const half = Math.atan(Math.tan((camera.fov * Math.PI) / 360) * Math.min(1, camera.aspect));
     const corners = [0, 1, 2, 3, 4, 5, 6, 7].map((c) => new THREE.Vector3(
       c & 1 ? shown.max.x : shown.min.x, c & 2 ? shown.max.y : shown.min.y, c & 4 ? shown.max.z : shown.min.z));
@@ -425,8 +418,37 @@ export async function mount(container, payload) {
     };
     let lo = 0.3, hi = (shown.getBoundingSphere(new THREE.Sphere()).radius + 0.3) / Math.sin(half);
     if (!fits(hi)) hi *= 1.5;
-    for (let k = 0; k < 20; k++) { const mid = (lo + hi) / 2; if (fits(mid)) hi = mid; else lo = mid; }
-    orbit.radius = hi;
+    for (let q = 0; q < 20; q++) { const mid = (lo + hi) / 2; if (fits(mid)) hi = mid; else lo = mid; }
+    return hi;
+  };
+  const home = () => {
+    // the payload's azimuth/elevation are in the z-up world; turn them into theta/phi here
+    const dir = toThree([Math.cos(el_) * Math.cos(az), Math.cos(el_) * Math.sin(az), Math.sin(el_)]);
+    orbit.theta = Math.atan2(dir.x, dir.z);
+    orbit.phi = Math.acos(Math.min(Math.max(dir.y, -1), 1));
+    fitted.length = 0;
+    if (follow) {
+      // fit 6 frames a second, the last one too, and interpolate between them (then smoothed)
+      const step = Math.max(1, Math.round(fps / 6)), d = new Array(T);
+      for (let f = 0; f < T; f = f === T - 1 ? T : Math.min(f + step, T - 1)) {
+        orbit.target.copy(smooth[f]);
+        d[f] = fit(nearBox(f));
+      }
+      for (let f = 0, a = 0; f < T; f++) {
+        if (d[f] !== undefined) { a = f; continue; }
+        const b = Math.min(a + step, T - 1);
+        d[f] = d[a] + ((d[b] - d[a]) * (f - a)) / (b - a);
+      }
+      for (let f = 0; f < T; f++) {
+        const near = d.slice(Math.max(0, f - k), f + k + 1);
+        fitted.push(near.reduce((a, b) => a + b, 0) / near.length);
+      }
+      orbit.target.copy(smooth[frame]);
+      orbit.radius = fitted[frame];
+    } else {
+      orbit.target.set(centre.x, 0.45 * size.y + box.min.y, centre.z);
+      orbit.radius = fit(box);
+    }
     orbit.update();
   };
 
@@ -437,12 +459,12 @@ export async function mount(container, payload) {
   const time = el("span", { className: "mmp-time" }, bar);
   const speed = el("select", { title: "playback speed" }, bar);
   SPEEDS.forEach((s) => el("option", { value: s, textContent: `${s}×`, selected: s === 1 }, speed));
-  const followLabel = el("label", { title: "camera follows the characters" }, bar);
+  const followLabel = el("label", { title: "the camera follows the characters; untick for the whole path" }, bar);
   const followBox = el("input", { type: "checkbox", checked: follow }, followLabel);
   followLabel.append(" follow");
   const resetBtn = el("button", { type: "button", textContent: "⟲", title: "reset the view (double-click)" }, bar);
 
-  let frame = 0, playing = false, clock = 0, lastTime = null, dirty = false, visible = true;
+  let frame = 0, shown = 0, playing = false, clock = 0, lastTime = null, dirty = false, visible = true;
   const aspectFix = () => {
     const w = stage.clientWidth || width, h = Math.round(w * aspect);
     stage.style.height = `${h}px`;
@@ -468,10 +490,11 @@ export async function mount(container, payload) {
     });
     ghosts.forEach((g) => { g.mat.opacity = g.frame >= 0 && Math.abs(g.frame - frame) <= 2 ? 0.6 : 0.28; });
     if (follow) {
-      const d = tmp.subVectors(smooth[frame], orbit.target);
-      orbit.target.add(d);
+      orbit.radius *= fitted[frame] / fitted[shown]; // keeps a zoom the reader chose
+      orbit.target.add(tmp.subVectors(smooth[frame], orbit.target));
       orbit.update();
     }
+    shown = frame;
     slider.value = String(frame);
     time.textContent = `${frame + 1} / ${T} · ${(frame / fps).toFixed(2)} s`;
     container.dataset.frame = String(frame);
@@ -480,6 +503,7 @@ export async function mount(container, payload) {
 
   function placeLabels() {
     const w = stage.clientWidth, h = stage.clientHeight, p = new THREE.Vector3();
+    camera.updateMatrixWorld(); // a turn of the view moved the camera since the last render
     figures.forEach((fig, i) => {
       if (!payload.motions[i].label) return;
       let top = -Infinity;
@@ -560,6 +584,14 @@ export async function mount(container, payload) {
     play: () => setPlaying(true),
     pause: () => setPlaying(false),
     get playing() { return playing; },
+    // each character's on-screen height, as a share of the picture's height
+    bodyHeights: () => {
+      camera.updateMatrixWorld();
+      return figures.map((fig) => {
+        const ys = fig.joints.map((m) => m.position.clone().project(camera).y);
+        return (Math.max(...ys) - Math.min(...ys)) / 2;
+      });
+    },
     camera, orbit, renderer,
   };
   container.minimdmPlayer = api;
