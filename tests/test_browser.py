@@ -31,6 +31,10 @@ import pytest
 from conftest import _unavailable
 
 ROOT = Path(__file__).resolve().parents[1]
+# How long a page may take to mount its players. Chromium draws WebGL on the CPU here
+# (SwiftShader): chapter 2's 14 players take about 9 s of compiling and context set-up on an idle
+# 2-core machine, and several times that beside other work.
+PAGE_TIMEOUT = 120_000
 
 
 def two_players() -> tuple[str, str]:
@@ -102,6 +106,7 @@ class Visit:
     def __init__(self, browser, base: str, context=None):
         self.base, self.errors, self.outside = base, [], []
         self.context = context or browser.new_context(viewport={"width": 1000, "height": 900})
+        self.context.set_default_timeout(PAGE_TIMEOUT)
         self.context.route("**/*", self._route)
         self.page = self.context.new_page()
         self.page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
@@ -156,7 +161,7 @@ def test_two_players_on_one_page(browser, site):
     p = v.open("players.html")
     p.wait_for_function(
         "document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === 2",
-        timeout=30_000,
+        timeout=PAGE_TIMEOUT,
     )
     players = p.locator(".minimdm-player")
     assert players.locator(".mmp-poster").count() == 0  # the posters gave way to the canvases
@@ -200,7 +205,7 @@ def test_two_players_on_one_page(browser, site):
     # first player left in this browser's localStorage
     later = v.context.new_page()
     later.goto(base + "later_only.html")
-    later.wait_for_selector(".minimdm-player[data-ready='1']", timeout=30_000)
+    later.wait_for_selector(".minimdm-player[data-ready='1']", timeout=PAGE_TIMEOUT)
     v.check_clean()
     v.context.close()
 
@@ -254,7 +259,7 @@ def check_players(p, name: str) -> int:
         return 0
     p.wait_for_function(
         f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
-        timeout=30_000,
+        timeout=PAGE_TIMEOUT,
     )
     for i in range(n):  # scrubbing pauses a player
         players.nth(i).locator("input[type=range]").evaluate(
@@ -324,7 +329,7 @@ def test_chapter_outputs_fit_the_column(browser, site):
         if n:
             p.wait_for_function(
                 f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
-                timeout=30_000,
+                timeout=PAGE_TIMEOUT,
             )
         for i in range(n):
             for at in ("0", "Math.floor(pl.nFrames / 2)"):
