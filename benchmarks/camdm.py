@@ -24,9 +24,11 @@ with :func:`minimdm.studies.seeds.summarize_seeds`. Not a test.
   straight walk at 1.2 m/s, the style switched after 4 s and run for 6 s more. Methods: CFG on
   the past motion (CFG-PM, eq. 5) at gamma in {0.5, 0.7, 1.0}, and CFG on the style label
   (CFG-S, the paper's rejected alternative) at gamma = 2, each for the re-plans of the first
-  second after the switch. Metrics: the first offset (frames, in steps of 5) after the switch at
-  which a 60-frame clip is classified as the new style (the transition duration; pairs that
-  never get there count as 180), and the share of pairs whose first such clip ends within 4 s.
+  second after the switch (``guide_switch``); ``--control`` sets what the other re-plans do
+  (e.g. ``guide=style gamma=2``: CFG on the style at steady state). Metrics: the first offset
+  (frames, in steps of 5) after the switch at which a 60-frame clip is classified as the new
+  style (the transition duration; pairs that never get there count as 180), and the share
+  of pairs whose first such clip ends within 4 s.
   The accuracy of the last clip before the switch says how often the old style was there.
   ``cfg_pm_0.7_no_seam`` is CFG-PM at 0.7 on the paper's controller (no re-plan
   inertialization).
@@ -356,13 +358,13 @@ def transition_pairs(S: int, k: int = 2, seed: int = 0) -> list[tuple[int, int]]
     return pairs
 
 
-TRANSITION_METHODS = {
-    "cfg_pm_0.5": {"guide": "past", "gamma_switch": 0.5},
-    "cfg_pm_0.7": {"guide": "past", "gamma_switch": 0.7},
-    "cfg_pm_1.0": {"guide": "past", "gamma_switch": 1.0},
-    "cfg_s_2.0": {"guide": "style", "gamma_switch": 2.0},
+TRANSITION_METHODS = {  # what CFG does in the first second after the switch
+    "cfg_pm_0.5": {"guide_switch": "past", "gamma_switch": 0.5},
+    "cfg_pm_0.7": {"guide_switch": "past", "gamma_switch": 0.7},
+    "cfg_pm_1.0": {"guide_switch": "past", "gamma_switch": 1.0},
+    "cfg_s_2.0": {"guide_switch": "style", "gamma_switch": 2.0},
     # the paper's controller, without the re-plan inertialization (our addition)
-    "cfg_pm_0.7_no_seam": {"guide": "past", "gamma_switch": 0.7, "halflife_replan": 0.0},
+    "cfg_pm_0.7_no_seam": {"guide_switch": "past", "gamma_switch": 0.7, "halflife_replan": 0.0},
 }
 
 
@@ -376,9 +378,11 @@ def transitions(setting: Setting, args) -> None:
     velocity = torch.tensor([1.2, 0.0]).expand(B, N, 2).clone()
     style = torch.cat([src[:, None].expand(B, before), dst[:, None].expand(B, after)], 1)
     offsets = list(range(0, after - 60 + 1, 5))
+    steady = control_overrides(getattr(args, "control", None))  # CFG away from the switch
     for seed in range(args.seeds):
         for name, how in TRANSITION_METHODS.items():
-            ctl = CAMDMController(setting.camdm, ControlConfig(**how))
+            config = ControlConfig(**{**steady, **how})
+            ctl = CAMDMController(setting.camdm, config)
             ctl.reset(setting.camdm_starts[src], style=src)
             with num_threads(1):  # a few characters: one thread is fastest
                 res = ctl.run(
@@ -400,8 +404,9 @@ def transitions(setting: Setting, args) -> None:
                     "pairs": len(pairs),
                     "copies": copies,
                     "gamma_switch": how["gamma_switch"],
-                    "guide": how["guide"],
-                    "halflife_replan": ControlConfig(**how).halflife_replan,
+                    "guide": how["guide_switch"],
+                    "halflife_replan": config.halflife_replan,
+                    **({"control": steady} if steady else {}),
                     "duration_frames": float(first.mean()),
                     "success_4s": float((first + 60 <= 120).float().mean()),
                     "reached_6s": float(hit.any(1).float().mean()),

@@ -208,6 +208,26 @@ def test_cfg_scales_per_sample_leave_gamma_one_rows_conditional():
     assert GuidedStep(model, NoiseSchedule("cosine", 8)).name == "cfg"
 
 
+def test_cfg_guides_each_sample_on_its_own_condition():
+    """A (B,) bool guide: rows marked True guide on the style, the others on the past, still in
+    one forward pass of 2 B rows; each row equals the single-guide result for that row."""
+    model, cond = net(), conditions()
+    x, t = torch.randn(3, F, D), torch.tensor([2, 2, 2])
+    on_style = torch.tensor([True, False, True])
+    calls = []
+    model.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    out = guided_x0(model, x, t, cond, 2.0, on_style)
+    assert calls == [6]
+    with torch.no_grad():
+        by_style, by_past = (guided_x0(model, x, t, cond, 2.0, g) for g in ("style", "past"))
+    torch.testing.assert_close(out[on_style], by_style[on_style], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out[~on_style], by_past[~on_style], atol=1e-5, rtol=1e-5)
+    assert (by_style - by_past).abs().max() > 1e-3  # the two guides differ on this model
+    for bad in (torch.tensor([1, 0, 1]), torch.tensor([True, False]), "trajectory"):
+        with pytest.raises(InputError, match="guide must be 'past'"):
+            guided_x0(model, x, t, cond, 2.0, bad)
+
+
 # ------------------------------------------------------------------------------ trajectories
 
 
@@ -448,6 +468,28 @@ def test_a_start_of_another_style_is_a_style_change(tiny):
     assert torch.stack(out.gammas).flatten().tolist() == pytest.approx([0.7, 1, 0.7, 1, 1, 1])
     with pytest.raises(InputError, match="one of the model's styles"):
         ctl.reset(walker("big"), style="drunk")
+
+
+def test_the_controller_guides_on_the_style_and_on_the_past_after_a_change(tiny, monkeypatch):
+    ckpt, _ = tiny
+    config = ControlConfig(M=3, switch_frames=4, guide="style", gamma=2.0, guide_switch="past")
+    ctl = CAMDMController(ckpt, config)
+    seen = []
+    plan = ctl.sample_plan
+
+    def spy(past, style, trajectory, generator, gamma, guide="past"):
+        seen.append((gamma.tolist(), guide.tolist()))  # gamma is float32
+        return plan(past, style, trajectory, generator, gamma, guide)
+
+    monkeypatch.setattr(ctl, "sample_plan", spy)
+    ctl.reset(walker("big"), n_characters=2, style=["big", "small"])
+    ctl.run(Commands.hold([1.0, 0.0], 0.0, 1, 9, batch=2), 9, torch.Generator().manual_seed(0))
+    # character 0 changes style at frame 0: CFG on the past at 0.7 for the re-plans at frames 0
+    # and 3 (within switch_frames), then on the style at 2 like character 1
+    assert [g for _, g in seen] == [[False, True], [False, True], [True, True]]
+    assert [s for s, _ in seen] == [pytest.approx([0.7, 2.0])] * 2 + [pytest.approx([2.0, 2.0])]
+    with pytest.raises(InputError, match="guide_switch must be 'past' or 'style'"):
+        CAMDMController(ckpt, ControlConfig(guide_switch="future"))
 
 
 def test_the_controller_without_hfte_still_runs(tiny):

@@ -17,7 +17,8 @@ it: a plan samples F frames at once. A plan:
    ablation "w/o HFTE"), and blends it with the user's;
 4. samples the future with 8 denoising steps (:func:`~minimdm.camdm.sampling.sample_future`),
    with CFG on the past motion at ``gamma_switch`` (0.7) for re-plans within ``switch_frames``
-   of a style change, else at ``gamma`` (1: the conditional model alone);
+   of a style change, else at ``gamma`` (1: the conditional model alone); ``guide`` and
+   ``guide_switch`` choose what each guides on (CFG on the style at steady state is ours);
 5. inertializes the new plan (``halflife_replan``, 0.1 s; our addition, not in the paper). A
    plan's first frame does not quite continue the last applied one: on the shipped model the
    joint acceleration at a re-plan frame is several times that of the other frames, a small pop
@@ -75,7 +76,7 @@ from .data import (
     world_frames,
 )
 from .model import CAMDM, Conditions
-from .sampling import gamma_per_sample, sample_future
+from .sampling import check_guide, gamma_per_sample, sample_future
 from .train import load_camdm
 from .trajectory import (
     blend_trajectories,
@@ -105,7 +106,12 @@ class ControlConfig:
     switch_frames: int = 30
     """Frames after a style change that re-plans use ``gamma_switch``."""
     guide: str = "past"
-    """What CFG drops: 'past' (CFG-PM) or 'style' (CFG-S, the rejected alternative)."""
+    """What CFG drops while the style is unchanged: 'past' (CFG-PM) or 'style' (CFG-S)."""
+    guide_switch: str | None = None
+    """What CFG drops within ``switch_frames`` of a style change; None: ``guide``. With
+    ``guide="style", gamma=2, guide_switch="past"`` the controller sharpens the style at steady
+    state and loosens the past right after a change (each sample guides on one, so a plan still
+    costs two model calls, batched). A fast-path planner guides on one thing only."""
     halflife: float = 0.3
     """Half-life of the velocity spring, seconds."""
     halflife_facing: float = 0.3
@@ -191,8 +197,10 @@ class CAMDMController:
         self.checkpoint = checkpoint
         self.model: CAMDM = checkpoint.model.eval()
         self.config = config or ControlConfig()
-        if self.config.guide not in ("past", "style"):
-            raise InputError(f"guide must be 'past' or 'style', got {self.config.guide!r}")
+        for name in ("guide", "guide_switch"):
+            value = getattr(self.config, name)
+            if value not in ("past", "style") and not (name == "guide_switch" and value is None):
+                raise InputError(f"ControlConfig.{name} must be 'past' or 'style', got {value!r}")
         check_number("ControlConfig.halflife_replan", self.config.halflife_replan, low=0.0)
         self.device = torch.device(device)
         self.layout = CAMDMLayout.from_dict(checkpoint.feature_layout)
@@ -212,6 +220,12 @@ class CAMDMController:
         meta = getattr(planner, "metadata", None)
         if meta is not None:
             L, plan, guide = self.layout, meta.get("plan", {}), self.config.guide
+            if self.config.guide_switch not in (None, guide):
+                raise InputError(
+                    f"a planner graph guides on one thing, but ControlConfig guides on {guide!r} "
+                    f"and on {self.config.guide_switch!r} at a switch: give guide_switch=None "
+                    "or drop the planner"
+                )
             want = {"kind": "camdm", "P": L.past, "F": L.future, "D": L.dim, "guide": guide}
             got = {"kind": meta.get("kind"), **{k: plan.get(k) for k in ("P", "F", "D", "guide")}}
             if got != want:
@@ -229,12 +243,14 @@ class CAMDMController:
         trajectory: Tensor,
         generator: torch.Generator | None = None,
         gamma: float | Tensor = 1.0,
-        guide: str = "past",
+        guide: str | Tensor = "past",
     ) -> Tensor:
         """Sample the future ``(B, F, D)`` from past frames ``(B, P, D)`` and a trajectory
         ``(B, F, 4)`` (x, y, cos, sin), all in the frame of the last past frame, and styles.
 
-        The inputs are checked, then :meth:`sample_plan` (or the ``planner``) samples."""
+        ``guide``: 'past', 'style', or a (B,) bool tensor, True where a sample guides on its
+        style (:func:`~minimdm.camdm.sampling.guided_x0`). The inputs are checked, then
+        :meth:`sample_plan` (or the ``planner``) samples."""
         L = self.layout
         past = self._check("past", past, (L.past, L.dim), "frames of the model's skeleton")
         B = past.shape[0]
@@ -250,15 +266,15 @@ class CAMDMController:
         elif s.shape != (B,):
             raise InputError(f"style must be one style or {B} (one per past motion), got {len(s)}")
         check_generator("generator", generator, self.device)
-        if guide not in ("past", "style"):
-            raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+        guide = check_guide(guide, B)
         if not isinstance(gamma, Tensor):
             gamma = check_number("gamma", gamma)
         gamma = gamma_per_sample(gamma, B, self.device)
         past, traj = past.to(self.device), traj.to(self.device)
         if self.planner is None:
             return self.sample_plan(past, s, traj, generator, gamma, guide)
-        if guide != self.config.guide:
+        if not isinstance(guide, str) or guide != self.config.guide:
+            guide = "per sample" if isinstance(guide, Tensor) else guide
             raise InputError(
                 f"guide: the planner guides on {self.config.guide!r} (the config's), got {guide!r}"
             )
@@ -272,7 +288,7 @@ class CAMDMController:
         trajectory: Tensor,
         generator: torch.Generator | NoiseTape | None,
         gamma: Tensor | None,
-        guide: str = "past",
+        guide: str | Tensor = "past",
     ) -> Tensor:
         """One planning call on checked tensors: the future ``(B, F, D)`` from ``past``
         ``(B, P, D)``, ``style`` (B,) indices, ``trajectory`` (B, F, 4) and ``gamma`` (B,)
@@ -471,8 +487,13 @@ class CAMDMController:
             changed = (cmd[2] != self._style).cpu()
             self._changed_at[changed] = self._frame
         since = self._frame - self._changed_at
-        gamma = torch.where(since < cfg.switch_frames, cfg.gamma_switch, cfg.gamma).float()
-        future = self.plan(past, cmd[2], traj, generator, gamma.to(self.device), cfg.guide)
+        near = since < cfg.switch_frames
+        gamma = torch.where(near, cfg.gamma_switch, cfg.gamma).float()
+        guide: str | Tensor = cfg.guide
+        if cfg.guide_switch not in (None, cfg.guide):  # per sample: True guides on the style
+            guide = torch.where(near, cfg.guide_switch == "style", cfg.guide == "style")
+            guide = guide.to(self.device)
+        future = self.plan(past, cmd[2], traj, generator, gamma.to(self.device), guide)
         new = to_world(future, xy, h)  # (B, F, D)
         old = None if self._plan is None else self._plan[:, self._applied :]
         if cfg.halflife_replan > 0 and old is not None and old.shape[1] >= 2:

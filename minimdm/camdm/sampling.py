@@ -8,7 +8,9 @@ clean estimate is the classifier-free combination of eq. 5,
           G(x_t, t; \\varnothing, c)\\bigr),
 
 on the past motion p (CFG-PM, ``guide="past"``) or, the paper's rejected alternative, on the
-style label (CFG-S, ``guide="style"``). Both halves run in **one** forward pass: the batch is
+style label (CFG-S, ``guide="style"``), or, per sample, on either (``guide`` a (B,) bool tensor,
+True where the sample guides on its style: the controller guides on the style at steady state
+and on the past right after a style change). Both halves run in **one** forward pass: the batch is
 doubled, conditional rows first. At ``gamma = 1`` the combination is the conditional model
 itself, so the rule calls the conditional model alone (as the paper does, to save the second
 half): the sample is then bit for bit that of the conditional model. ``gamma`` may differ per
@@ -22,6 +24,8 @@ plans at ``gamma = 1``.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from torch import Tensor
 
@@ -30,7 +34,7 @@ from minimdm.validate import InputError, check_number
 
 from .model import CAMDM, Conditions
 
-__all__ = ["GuidedStep", "guided_x0", "gamma_per_sample", "sample_future"]
+__all__ = ["GuidedStep", "check_guide", "guided_x0", "gamma_per_sample", "sample_future"]
 
 
 def gamma_per_sample(gamma: float | Tensor, B: int, device: torch.device | str) -> Tensor:
@@ -43,13 +47,36 @@ def gamma_per_sample(gamma: float | Tensor, B: int, device: torch.device | str) 
     return g
 
 
+def check_guide(guide: str | Tensor, B: int) -> str | Tensor:
+    """``guide`` as :func:`guided_x0` takes it: 'past', 'style', or a (B,) bool tensor (True:
+    that sample guides on its style, False: on its past motion)."""
+    if isinstance(guide, Tensor):
+        if guide.dtype != torch.bool or guide.shape != (B,):
+            raise InputError(
+                f"guide must be 'past', 'style' or a ({B},) bool tensor (True: on the style), got "
+                f"a {guide.dtype} tensor of shape {tuple(guide.shape)}"
+            )
+        return guide
+    if guide not in ("past", "style"):
+        raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+    return guide
+
+
+def drop_guided(cond: Conditions, guide: str | Tensor) -> Conditions:
+    """``cond`` without what each sample guides on (the second half of eq. 5)."""
+    if isinstance(guide, str):
+        return cond.without(guide)
+    on_style = guide.to(cond.past.device)
+    return replace(cond, keep_past=on_style, keep_style=~on_style)
+
+
 def guided_x0(
     model: CAMDM,
     x_t: Tensor,
     t: Tensor,
     cond: Conditions,
     gamma: float | Tensor | None,
-    guide: str,
+    guide: str | Tensor,
 ) -> Tensor:
     """The clean estimate of eq. 5 for ``x_t`` (B, F, D) at levels ``t`` (B,).
 
@@ -59,13 +86,16 @@ def guided_x0(
     call on B rows up to the float rounding of the larger batch). Under tracing
     (:mod:`minimdm.fast`) ``gamma`` is an input of the graph, which keeps the 2 B rows for every
     ``gamma``. ``gamma=None`` is no guidance: the conditional model on the B rows, traced too.
+    ``guide``: 'past', 'style', or per sample a (B,) bool tensor, True where the sample guides on
+    its style.
     """
+    guide = check_guide(guide, x_t.shape[0])
     if gamma is None:
         return model(x_t, t, cond)
     g = gamma_per_sample(gamma, x_t.shape[0], x_t.device)
     if not torch.jit.is_tracing() and bool((g == 1).all()):
         return model(x_t, t, cond)
-    both = model(torch.cat([x_t, x_t]), torch.cat([t, t]), cond.cat(cond.without(guide)))
+    both = model(torch.cat([x_t, x_t]), torch.cat([t, t]), cond.cat(drop_guided(cond, guide)))
     full, dropped = both.chunk(2)  # G(x_t; p, c), G(x_t; ∅, c)
     w = g.view(-1, *([1] * (x_t.dim() - 1)))
     return torch.where(w == 1, full, dropped + w * (full - dropped))
@@ -81,11 +111,11 @@ class GuidedStep(DDPMStep):
         model: CAMDM,
         schedule: NoiseSchedule,
         gamma: float | Tensor | None = 1.0,
-        guide: str = "past",
+        guide: str | Tensor = "past",
     ) -> None:
         super().__init__(model, schedule, predicts="x0")
-        if guide not in ("past", "style"):
-            raise InputError(f"guide must be 'past' (CFG-PM) or 'style' (CFG-S), got {guide!r}")
+        if isinstance(guide, str):
+            guide = check_guide(guide, 0)
         self.gamma, self.guide = gamma, guide
 
     def predict(self, x_t, t, cond, generator):
@@ -101,7 +131,7 @@ def sample_future(
     generator: torch.Generator | NoiseTape | None = None,
     *,
     gamma: float | Tensor | None = 1.0,
-    guide: str = "past",
+    guide: str | Tensor = "past",
     count: StepCount | None = None,
 ) -> Tensor:
     """Draw the clean future ``(B, F, D)`` (normalized units) for conditions of B windows: the
@@ -109,7 +139,8 @@ def sample_future(
 
     ``generator`` may be a :class:`~minimdm.diffusion.NoiseTape` (the fast path): its draws are
     x_T, then one (F D) block per step but the last. ``gamma=None``: no guidance (the
-    conditional model, as at ``gamma = 1``, also when traced)."""
+    conditional model, as at ``gamma = 1``, also when traced). ``guide``: as
+    :func:`guided_x0`."""
     if gamma is not None and not isinstance(gamma, Tensor):
         gamma = check_number("gamma", gamma)
     c = model.config
