@@ -332,7 +332,10 @@ def control(
                 skeleton = setting.amdm_skeleton
             row = {
                 "bench": "control",
-                "method": label_prefix + method,
+                "method": label_prefix
+                + (
+                    getattr(args, "label", method) if ckpt is None and method == "camdm" else method
+                ),
                 "seed": seed,
                 "styles": S,
                 "commands": n_cmd,
@@ -625,6 +628,11 @@ def main() -> None:
         default=[],
         metavar="KEY=VALUE",
         help="control: ControlConfig fields for the CAMDM controller (e.g. guide=style gamma=2)",
+    )
+    p.add_argument(
+        "--label",
+        default="camdm",
+        help="control: the CAMDM rows' method name (e.g. camdm_cfg_s for a --control variant)",
     )
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--commands", type=int, default=3)

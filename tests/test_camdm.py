@@ -492,6 +492,22 @@ def test_the_controller_guides_on_the_style_and_on_the_past_after_a_change(tiny,
         CAMDMController(ckpt, ControlConfig(guide_switch="future"))
 
 
+def test_the_controller_replans_sooner_while_turning(tiny):
+    """M_turning applies while a character faces further than turning_deg from its command."""
+    ckpt, _ = tiny
+    replans = {}
+    for name, facing in (("ahead", 0.0), ("behind", math.pi)):
+        ctl = CAMDMController(ckpt, ControlConfig(M=5, M_turning=2, turning_deg=45.0))
+        ctl.reset(walker("big"))
+        here = camdm_controller.headings(ctl.history[:, -1:], ctl.skeleton.lateral_axis)[0, 0]
+        out = ctl.run(Commands.hold([1.0, 0.0], float(here) + facing, 0, 10), 10)
+        replans[name] = out.replans
+    assert replans["behind"] == [0, 2, 4, 6, 8]
+    assert replans["ahead"] == [0, 5]  # facing the command: a plan serves M = 5 frames
+    with pytest.raises(InputError, match="M_turning"):
+        CAMDMController(ckpt, ControlConfig(M_turning=0))
+
+
 def test_the_controller_without_hfte_still_runs(tiny):
     ckpt, _ = tiny
     ctl = CAMDMController(ckpt, ControlConfig(M=4, extend=False))

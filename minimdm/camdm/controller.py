@@ -41,6 +41,7 @@ the eager controller's frames within float rounding (1e-4) for the same generato
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -95,6 +96,12 @@ class ControlConfig:
 
     M: int = 15
     """Generated frames applied before re-planning while the input is unchanged."""
+    M_turning: int | None = None
+    """M while a character faces more than ``turning_deg`` away from its commanded facing (our
+    addition; None: always M). Each plan turns only part of the way, so short plans finish a
+    sharp turn sooner; long ones at steady state keep the plans' diversity and cost."""
+    turning_deg: float = 45.0
+    """How far from the commanded facing (degrees) counts as turning, for ``M_turning``."""
     K: int = 15
     """Predicted trajectory points HFTE recycles."""
     extend: bool = True
@@ -202,6 +209,9 @@ class CAMDMController:
             if value not in ("past", "style") and not (name == "guide_switch" and value is None):
                 raise InputError(f"ControlConfig.{name} must be 'past' or 'style', got {value!r}")
         check_number("ControlConfig.halflife_replan", self.config.halflife_replan, low=0.0)
+        check_int("ControlConfig.M", self.config.M, low=1)
+        if self.config.M_turning is not None:
+            check_int("ControlConfig.M_turning", self.config.M_turning, low=1)
         self.device = torch.device(device)
         self.layout = CAMDMLayout.from_dict(checkpoint.feature_layout)
         self.skeleton = Skeleton.from_dict(checkpoint.skeleton)
@@ -438,7 +448,13 @@ class CAMDMController:
         return result
 
     def _needs_plan(self, cmd: tuple[Tensor, Tensor, Tensor]) -> bool:
-        if self._plan is None or self._applied >= min(self.config.M, self.layout.future):
+        cfg = self.config
+        M = cfg.M
+        if cfg.M_turning is not None and self._plan is not None:
+            facing = headings(self.history[:, -1:], self.skeleton.lateral_axis)[:, 0]
+            if (wrap_angle(cmd[1] - facing).abs() > math.radians(cfg.turning_deg)).any():
+                M = cfg.M_turning
+        if self._plan is None or self._applied >= min(M, self.layout.future):
             return True
         v, h, s = self._command
         return bool(
