@@ -564,10 +564,12 @@ def _add_export_parser(add: _AddParser) -> None:
     x.add_argument("--steps", type=_int_arg(1), default=None, help="A-MDM: DDIM steps")
     x.add_argument("--eta", type=float, default=1.0, help="A-MDM: DDIM stochasticity")
     guide_help = (
-        "CAMDM: what CFG drops (default past: CFG-PM; none: no guidance, the conditional model "
-        "alone, half the arithmetic, for plans at gamma 1)"
+        "CAMDM: what CFG drops (default past: CFG-PM; style: CFG-S; each: an input on_style "
+        "says, per sample; none: no guidance, the conditional model alone, half the arithmetic, "
+        "for plans at gamma 1)"
     )
-    x.add_argument("--guide", choices=("past", "style", "none"), default=None, help=guide_help)
+    guides = ("past", "style", "each", "none")
+    x.add_argument("--guide", choices=guides, default=None, help=guide_help)
     x.add_argument(
         "--weights",
         choices=("fp32", "int8"),

@@ -281,11 +281,12 @@ def tiny_camdm(folder, seed: int = 0, styles=("big", "small", "sad")):
 
 @pytest.fixture(scope="module")
 def camdm(tmp_path_factory):
-    """A tiny CAMDM checkpoint, its plan graphs (CFG on the past, on the style, and none),
-    exported."""
+    """A tiny CAMDM checkpoint, its plan graphs (CFG on the past, on the style, on either per
+    sample, and none), exported."""
     folder = tmp_path_factory.mktemp("camdm")
     ckpt = tiny_camdm(folder)
-    graphs = {guide: frame_graph(ckpt, guide=guide) for guide in ("past", "style", "none")}
+    guides = ("past", "style", "each", "none")
+    graphs = {guide: frame_graph(ckpt, guide=guide) for guide in guides}
     return folder, ckpt, {k: (g, export_onnx(g)) for k, g in graphs.items()}
 
 
@@ -471,6 +472,39 @@ def test_controller_with_the_fast_planner_gives_the_eager_frames(camdm, halflife
     assert a.replans == b.replans and len(a.replans) >= 4
     assert any((g != 1).any() for g in a.gammas) and any((g == 1).all() for g in a.gammas)
     assert (a.frames - b.frames).abs().max().item() < TOL
+
+
+def test_the_each_graph_guides_every_sample_as_the_controller_asks(camdm):
+    """guide='each': CFG on the style where on_style is 1, on the past where 0, as the eager
+    plan with a per-sample guide; a controller that guides on the style at steady state and on
+    the past after a change runs on it (CAMDMPlanner) with the eager controller's frames."""
+    from minimdm.camdm.controller import CAMDMController, ControlConfig
+    from minimdm.fast import CAMDMPlanner
+
+    _, ckpt, graphs = camdm
+    graph, data = graphs["each"]
+    ctl, fast = graph.controller, FastFrame(data)
+    assert fast.inputs == ["past", "style", "trajectory", "gamma", "on_style", "noise"]
+    past, style, traj = _plan_inputs(ctl.layout, batch=4, seed=7)
+    gamma, on = torch.tensor([0.7, 2.0, 2.0, 0.5]), torch.tensor([0, 1, 0, 1])
+    eager = ctl.plan(past, style, traj, torch.Generator().manual_seed(1), gamma, on.bool())
+    out = fast(past, torch.Generator().manual_seed(1), style=style, trajectory=traj,
+               gamma=gamma, on_style=on)  # fmt: skip
+    assert (out - eager).abs().max().item() < TOL
+    flipped = fast(past, torch.Generator().manual_seed(1), style=style, trajectory=traj,
+                   gamma=gamma, on_style=1 - on)  # fmt: skip
+    assert ((flipped - out).abs().amax(dim=(1, 2)) > 1e-4).all()
+
+    config = ControlConfig(M=3, K=3, guide="style", gamma=2.0, guide_switch="past")
+    planner = CAMDMPlanner(fast, FastFrame(graphs["none"][1]))
+    runs = []
+    for c in (CAMDMController(ckpt, config), CAMDMController(ckpt, config, planner=planner)):
+        c.reset(_standing(c.skeleton, batch=2), style=0)
+        runs.append(c.run(_commands(20, batch=2), 20, torch.Generator().manual_seed(4)))
+    assert (runs[0].frames - runs[1].frames).abs().max().item() < TOL
+    assert planner.calls["guided"] == len(runs[0].gammas)  # gamma 2 or 0.7: always guided
+    with pytest.raises(InputError, match="planner must be a CAMDM planning call"):
+        CAMDMController(ckpt, config, planner=FastFrame(graphs["style"][1]))
 
 
 def test_controller_refuses_a_planner_of_another_guide_or_kind(camdm):

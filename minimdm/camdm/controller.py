@@ -118,7 +118,8 @@ class ControlConfig:
     """What CFG drops within ``switch_frames`` of a style change; None: ``guide``. With
     ``guide="style", gamma=2, guide_switch="past"`` the controller sharpens the style at steady
     state and loosens the past right after a change (each sample guides on one, so a plan still
-    costs two model calls, batched). A fast-path planner guides on one thing only."""
+    costs two model calls, batched). A fast-path planner then needs the graph that takes each
+    sample's guide: ``minimdm.fast.fast_planner(ckpt, guide="each")``."""
     halflife: float = 0.3
     """Half-life of the velocity spring, seconds."""
     halflife_facing: float = 0.3
@@ -231,13 +232,11 @@ class CAMDMController:
         if meta is not None:
             L, plan, guide = self.layout, meta.get("plan", {}), self.config.guide
             if self.config.guide_switch not in (None, guide):
-                raise InputError(
-                    f"a planner graph guides on one thing, but ControlConfig guides on {guide!r} "
-                    f"and on {self.config.guide_switch!r} at a switch: give guide_switch=None "
-                    "or drop the planner"
-                )
+                guide = "each"  # two guides: the graph takes each sample's (fast_planner)
             want = {"kind": "camdm", "P": L.past, "F": L.future, "D": L.dim, "guide": guide}
             got = {"kind": meta.get("kind"), **{k: plan.get(k) for k in ("P", "F", "D", "guide")}}
+            if got["guide"] == "each":  # a graph that takes each sample's guide serves any
+                want["guide"] = "each"
             if got != want:
                 raise InputError(f"planner must be a CAMDM planning call with {want}, got {got}")
         where = str(self.checkpoint.paths.weights)
@@ -283,6 +282,13 @@ class CAMDMController:
         past, traj = past.to(self.device), traj.to(self.device)
         if self.planner is None:
             return self.sample_plan(past, s, traj, generator, gamma, guide)
+        meta = getattr(self.planner, "metadata", None) or {}
+        if meta.get("plan", {}).get("guide") == "each":
+            on_style = guide if isinstance(guide, Tensor) else torch.full((B,), guide == "style")
+            future = self.planner(
+                past, generator, style=s, trajectory=traj, gamma=gamma, on_style=on_style.long()
+            )
+            return future.to(self.device)
         if not isinstance(guide, str) or guide != self.config.guide:
             guide = "per sample" if isinstance(guide, Tensor) else guide
             raise InputError(

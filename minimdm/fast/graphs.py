@@ -406,7 +406,10 @@ class CAMDMPlan(FrameGraph):
     frame, not normalized; the graph normalizes and denormalizes): both halves of CAMDM eq. 5 in
     one forward pass at every step, combined with the per-sample scale ``gamma`` (an input: 1
     gives the conditional model, within float rounding; 0.7 is the controller's value after a
-    style change). ``guide`` ('past': CFG-PM, or 'style': CFG-S) is fixed at export.
+    style change). ``guide`` ('past': CFG-PM, or 'style': CFG-S) is fixed at export;
+    ``guide="each"`` adds an input ``on_style`` (1: that sample guides on its style, 0: on its
+    past), for a controller that guides on the style at steady state and on the past after a
+    change (:class:`~minimdm.camdm.controller.ControlConfig` ``guide_switch``).
 
     ``guide="none"`` traces the conditional model alone: no ``gamma`` input, half the rows, the
     plan at ``gamma = 1``. The controller's plans are at ``gamma = 1`` except in the second after
@@ -417,10 +420,10 @@ class CAMDMPlan(FrameGraph):
     kind = "camdm"
 
     def __init__(self, controller, guide: str = "past") -> None:
-        if guide not in ("past", "style", "none"):
+        if guide not in ("past", "style", "each", "none"):
             raise InputError(
-                f"guide must be 'past' (CFG-PM), 'style' (CFG-S) or 'none' (no guidance), got "
-                f"{guide!r}"
+                f"guide must be 'past' (CFG-PM), 'style' (CFG-S), 'each' (an input says which, "
+                f"per sample) or 'none' (no guidance), got {guide!r}"
             )
         super().__init__(controller.layout.dim)
         self.controller = controller
@@ -452,7 +455,10 @@ class CAMDMPlan(FrameGraph):
             Port("trajectory", (F, 4), "the future trajectory: x, y, cos, sin per future frame"),
         )
         gamma = Port("gamma", (), "the CFG scale of CAMDM eq. 5 (1: the conditional model)")
-        return ports if self.guide == "none" else ports + (gamma,)
+        on_style = Port("on_style", (), "1: CFG on the style (CFG-S), 0: on the past", "int64", 2)
+        if self.guide == "none":
+            return ports
+        return ports + (gamma,) + ((on_style,) if self.guide == "each" else ())
 
     def output(self):
         L = self.controller.layout
@@ -461,6 +467,9 @@ class CAMDMPlan(FrameGraph):
     def frame(self, past, generator, *extra):
         if self.guide == "none":
             (style, trajectory), gamma, guide = extra, None, "past"
+        elif self.guide == "each":
+            style, trajectory, gamma, on_style = extra
+            guide = on_style == 1
         else:
             (style, trajectory, gamma), guide = extra, self.guide
         return self.controller.sample_plan(past, style, trajectory, generator, gamma, guide)
@@ -473,7 +482,8 @@ class CAMDMPlan(FrameGraph):
             "none: x0 = G(x_t; cond), the conditional model (gamma = 1)"
             if self.guide == "none"
             else "x0 = G(x_t; ∅) + gamma (G(x_t; cond) - G(x_t; ∅)), both halves in one "
-            "forward pass of 2 B rows; ∅ drops the " + self.guide
+            "forward pass of 2 B rows; ∅ drops the "
+            + ("style or the past, as on_style says" if self.guide == "each" else self.guide)
         )
         return {
             "sampler": {

@@ -429,7 +429,7 @@ class CAMDMPlanner:
 
     def __init__(self, guided: FastFrame, conditional: FastFrame) -> None:
         for name, f, guides in (
-            ("guided", guided, ("past", "style")),
+            ("guided", guided, ("past", "style", "each")),
             ("conditional", conditional, ("none",)),
         ):
             if not isinstance(f, FastFrame):
@@ -455,17 +455,27 @@ class CAMDMPlanner:
         style: Tensor,
         trajectory: Tensor,
         gamma: Tensor,
+        on_style: Tensor | None = None,
         noise: Tensor | None = None,
     ) -> Tensor:
-        """The future (B, F, D), as :class:`FastFrame` computes it on the chosen graph."""
+        """The future (B, F, D), as :class:`FastFrame` computes it on the chosen graph.
+        ``on_style`` (B,) (1: CFG on the style, 0: on the past) is for a guided graph of
+        ``guide="each"``, which needs it."""
         if bool((torch.as_tensor(gamma) == 1).all()):
             self.calls["conditional"] += 1
             return self.conditional(
                 past, generator, noise=noise, style=style, trajectory=trajectory
             )
         self.calls["guided"] += 1
+        each = self.metadata["plan"]["guide"] == "each"
+        if each != (on_style is not None):
+            raise InputError(
+                "on_style: the guided graph of guide='each' needs it, any other takes none; got "
+                f"guide {self.metadata['plan']['guide']!r} and on_style {describe(on_style)}"
+            )
+        more = {"on_style": torch.as_tensor(on_style).long()} if each else {}
         return self.guided(
-            past, generator, noise=noise, style=style, trajectory=trajectory, gamma=gamma
+            past, generator, noise=noise, style=style, trajectory=trajectory, gamma=gamma, **more
         )
 
 
@@ -473,7 +483,8 @@ def fast_planner(
     checkpoint: Any, threads: int | None = 1, weights: str = "fp32", guide: str = "past"
 ) -> CAMDMPlanner:
     """The :class:`CAMDMPlanner` of a CAMDM checkpoint (a loaded one, a path or a shipped name):
-    its conditional graph and its graph guided on ``guide``; ``threads`` and ``weights`` as in
+    its conditional graph and its graph guided on ``guide`` ('past', 'style', or 'each': per
+    sample, for a controller with ``guide_switch``); ``threads`` and ``weights`` as in
     :func:`fast_frame`."""
     from .graphs import frame_graph, load
 
