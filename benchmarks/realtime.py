@@ -20,7 +20,8 @@ in one forward pass of 2 B rows; the controller applies M = 15 planned frames pe
 character runs at ``M / plan time`` frames per second when planning dominates), and
 ``camdm_gamma1``, the plan at gamma = 1 (the conditional model alone, ``guide="none"``: the
 graph that :class:`minimdm.fast.CAMDMPlanner` runs for every plan but those in the second after
-a style change). It also
+a style change), and ``camdm_each``, the graph of the book's controller (``guide="each"``: every
+plan guided, on the style at steady state and on the past after a change, 2 B rows). It also
 records the engine choice at batch 1 on one thread (TorchScript, ONNX Runtime, and with
 ``--compile`` torch.compile), the load of the machine (``uptime``), the memory bandwidth and
 the goals with the arithmetic that bounds them. Times are medians of ``--repeats`` blocks, the
@@ -52,14 +53,29 @@ from minimdm.fast import AMDMFrame, CAMDMPlan, FastFrame, export_onnx, frame_gra
 from minimdm.utils import num_threads
 
 RESULTS = ROOT / "benchmarks" / "results" / "realtime.jsonl"
-GOALS_MS = {"amdm": 2.0, "paper_10x1024": 20.0, "camdm": 15.0, "camdm_gamma1": 15.0}
+GOALS_MS = {
+    "amdm": 2.0,
+    "paper_10x1024": 20.0,
+    "camdm": 15.0,
+    "camdm_gamma1": 15.0,
+    "camdm_each": 15.0,
+}
 """Issue 16's goals, ms per frame (CAMDM: per planning call) on one core at batch 1."""
 CAMDM_M = 15
 """Frames the CAMDM controller applies per planning call (ControlConfig.M)."""
 CAMDM_GAMMA = 0.7
 """The CFG scale timed: not 1, so that eager runs both halves of eq. 5 as the graph does."""
-MODELS = ("amdm", "amdm_ddim5", "aamdm", "rl_joystick", "paper_10x1024", "camdm", "camdm_gamma1")
-QUICK = ("amdm", "amdm_ddim5", "camdm", "camdm_gamma1")
+MODELS = (
+    "amdm",
+    "amdm_ddim5",
+    "aamdm",
+    "rl_joystick",
+    "paper_10x1024",
+    "camdm",
+    "camdm_gamma1",
+    "camdm_each",
+)
+QUICK = ("amdm", "amdm_ddim5", "camdm", "camdm_gamma1", "camdm_each")
 
 
 def load() -> dict:
@@ -130,6 +146,8 @@ def inputs(graph, batch: int):
                  "trajectory": torch.randn(batch, L.future, 4, generator=g)}  # fmt: skip
         if graph.guide != "none":
             extra["gamma"] = torch.full((batch,), CAMDM_GAMMA)
+        if graph.guide == "each":  # half the characters guided on their style
+            extra["on_style"] = torch.arange(batch) % 2
         return past, extra
     state = 0.5 * torch.randn(batch, graph.state_dim, generator=g)
     extra = {n: torch.randn(batch, w, generator=g) for n, w, _ in graph.extra_inputs}
@@ -233,6 +251,7 @@ def main() -> None:
         "paper_10x1024": paper_graph,
         "camdm": lambda: frame_graph("camdm"),
         "camdm_gamma1": lambda: frame_graph("camdm", guide="none"),
+        "camdm_each": lambda: frame_graph("camdm", guide="each"),
     }
     models = args.models or (QUICK if args.quick else MODELS)
     graphs = {k: build[k]() for k in MODELS if k in models}
