@@ -285,6 +285,7 @@ def control(
     style_rows = styles
     B = len(styles)
     methods = ["camdm"] if ckpt is not None else args.methods
+    label = "camdm" if ckpt is not None else getattr(args, "label", "camdm")  # --label
     pol = load_steering(args.rl_joystick) if "amdm_rl_joystick" in methods else None
     for seed in range(args.seeds):
         for method in methods:
@@ -332,10 +333,7 @@ def control(
                 skeleton = setting.amdm_skeleton
             row = {
                 "bench": "control",
-                "method": label_prefix
-                + (
-                    getattr(args, "label", method) if ckpt is None and method == "camdm" else method
-                ),
+                "method": label_prefix + (label if method == "camdm" else method),
                 "seed": seed,
                 "styles": S,
                 "commands": n_cmd,
