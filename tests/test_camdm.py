@@ -31,7 +31,13 @@ from minimdm.camdm.data import (
 )
 from minimdm.camdm.model import CAMDM, CAMDMConfig, Conditions
 from minimdm.camdm.sampling import GuidedStep, guided_x0, sample_future
-from minimdm.camdm.train import CAMDMTrainConfig, data_from_clips, load_camdm, train_camdm
+from minimdm.camdm.train import (
+    CAMDMTrainConfig,
+    data_from_clips,
+    load_camdm,
+    train_camdm,
+    window_weights,
+)
 from minimdm.camdm.trajectory import (
     extend_trajectory,
     inertialize,
@@ -674,6 +680,23 @@ def test_a_bad_replan_halflife_names_the_field(tiny, value, error, words):
         CAMDMController(ckpt, ControlConfig(halflife_replan=value))
 
 
+def test_a_plan_used_up_is_followed_by_one_on_the_users_trajectory(tiny, monkeypatch):
+    """M >= F: HFTE has no predicted point left to extend, so the next plan's trajectory is the
+    user's spring path, as without HFTE (it used to raise inside extend_trajectory)."""
+    ckpt, _ = tiny
+    seen = {}
+    for extend in (True, False):
+        ctl = CAMDMController(ckpt, ControlConfig(M=F + 3, extend=extend))
+        ctl.reset(walker("small"))
+        n = 2 * F + 1
+        cmd = Commands.hold([0.5, 0.5], 1.0, 1, n)
+        seen[extend] = ctl.run(cmd, n, torch.Generator().manual_seed(1))
+        assert seen[extend].replans == [0, F, 2 * F]
+    for a, b in zip(seen[True].trajectories, seen[False].trajectories, strict=True):
+        assert torch.allclose(a, b)
+    assert torch.equal(seen[True].frames, seen[False].frames)
+
+
 def test_a_start_of_another_skeleton_is_refused(tiny):
     ckpt, _ = tiny
     ctl = CAMDMController(ckpt)
@@ -743,6 +766,50 @@ def test_mirror_adds_every_take_reflected_with_its_style():
     wm, sm = mirrored.bank.batch(idx + len(plain.bank), plain.skeleton.lateral_axis)
     assert torch.equal(s, sm)
     assert not torch.allclose(w, wm)  # the legs swap: the mirrored windows are other frames
+
+
+@given(counts=st.lists(st.integers(1, 40), min_size=1, max_size=6), balance=st.floats(0, 1))
+def test_style_balance_weighs_each_style_by_its_windows_to_the_minus_balance(counts, balance):
+    style = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    w = window_weights(style, balance)
+    if balance == 0:
+        assert w is None  # uniform draws, as before the field existed
+        return
+    per_style = torch.zeros(len(counts), dtype=torch.float64).index_add_(0, style, w)
+    expected = torch.tensor(counts, dtype=torch.float64) ** (1 - balance)
+    assert torch.allclose(per_style / per_style.sum(), expected / expected.sum())
+
+
+def test_a_balanced_run_draws_a_rare_style_as_often_as_a_common_one(tiny, monkeypatch, tmp_path):
+    """Two styles of about 1:5 windows: drawn about 1:5 by default, 1:1 balanced."""
+    from minimdm.camdm import train as camdm_train
+
+    _, data = tiny
+    short = walker("small", speed=0.02, n=data.layout.window + 20)
+    skewed = data_from_clips([walker("big", n=4 * data.layout.window + 80), short], tiny_config())
+    drawn = []
+    make = camdm_train.make_batch
+
+    def spy(d, idx, sigmas, generator, bank=None):
+        if bank is None:  # a training batch, not the evaluation's
+            drawn.append(d.bank.style[idx])
+        return make(d, idx, sigmas, generator, bank)
+
+    monkeypatch.setattr(camdm_train, "make_batch", spy)
+    shares = {}
+    for balance in (0.0, 1.0):
+        drawn.clear()
+        config = tiny_config(total_steps=40, batch_size=32, style_balance=balance)
+        train_camdm(config, tmp_path / str(balance), data=skewed, progress=False)
+        shares[balance] = torch.cat(drawn).float().mean().item()  # share of style 1 (small)
+    counts = torch.bincount(skewed.bank.style).tolist()
+    assert abs(shares[0.0] - counts[1] / sum(counts)) < 0.06
+    assert abs(shares[1.0] - 0.5) < 0.06
+
+
+def test_a_bad_style_balance_names_the_field():
+    with pytest.raises(ValueError, match=r"style_balance must lie in \[0, 1\], got 1.5"):
+        tiny_config(style_balance=1.5)
 
 
 def test_a_run_saved_before_a_field_existed_resumes_when_the_field_keeps_its_default(

@@ -95,7 +95,8 @@ class ControlConfig:
     """How the controller runs (CAMDM §3.3)."""
 
     M: int = 15
-    """Generated frames applied before re-planning while the input is unchanged."""
+    """Generated frames applied before re-planning while the input is unchanged (at most F: a
+    plan used up is followed by one on the user's trajectory alone, as without HFTE)."""
     M_turning: int | None = None
     """M while a character faces more than ``turning_deg`` away from its commanded facing (our
     addition; None: always M). Each plan turns only part of the way, so short plans finish a
@@ -487,7 +488,7 @@ class CAMDMController:
         else:
             rest = self._plan[:, self._applied :]  # (B, F - m, D) world
             pred_xy, pred_h = rest[:, :, :2], headings(rest, axis)
-            if cfg.extend:
+            if cfg.extend and pred_xy.shape[1] > 0:  # M >= F uses a plan up: nothing to extend
                 anchor = torch.cat([self.history[:, -1:, :2], pred_xy], 1)
                 anchor_h = torch.cat([hist_h[:, -1:], pred_h], 1)
                 ext_xy, ext_h = extend_trajectory(anchor, anchor_h, L.future + 1, cfg.K)

@@ -163,6 +163,15 @@ def make_batch(
     return w[:, L.past :], Conditions(w[:, : L.past], style, tr)
 
 
+def window_weights(style: Tensor, balance: float) -> Tensor | None:
+    """Sampling weights of the windows ``(W,)``: each counts (windows of its style)^-balance,
+    so that at ``balance`` 1 every style is drawn equally often. None at 0 (uniform draws)."""
+    if balance == 0:
+        return None
+    counts = torch.bincount(style).double()
+    return counts[style] ** -balance
+
+
 def camdm_loss(
     model: torch.nn.Module,
     schedule: NoiseSchedule,
@@ -252,10 +261,14 @@ def _train(
         resumable=_RESUMABLE,
     )
     sigmas = [0.0, 0.0, 5.0, 10.0] if config.smooth_sigmas is None else list(config.smooth_sigmas)
+    weights = window_weights(data.bank.style, config.style_balance)
 
     def batch_loss(step: int) -> StepOut:
         gen = state.generator
-        idx = torch.randint(len(data.bank), (config.batch_size,), generator=gen)
+        if weights is None:
+            idx = torch.randint(len(data.bank), (config.batch_size,), generator=gen)
+        else:
+            idx = torch.multinomial(weights, config.batch_size, replacement=True, generator=gen)
         x0, cond = make_batch(data, idx, sigmas, gen)
         loss, terms = camdm_loss(
             state.model, schedule, x0.to(device), _to(cond, device), data, config, gen

@@ -77,6 +77,10 @@ class CAMDMTrainConfig:
     """Windows per step."""
     total_steps: int = 10000
     """Optimizer steps."""
+    style_balance: float = 0.0
+    """How a batch's windows are drawn: a window counts (windows of its style)^-style_balance.
+    0: every window equally likely, so a style counts by its length (in the training takes,
+    sad has 10 times the windows of normal); 1: every style equally likely."""
     ema_decay: float = 0.999
     """EMA of the weights, sampled with (0: none)."""
     log_interval: int = 100
@@ -114,6 +118,8 @@ class CAMDMTrainConfig:
         for name in ("p_drop_past", "p_drop_style"):
             if not 0 <= getattr(self, name) < 1:
                 raise ValueError(f"{name} must lie in [0, 1), got {getattr(self, name)}")
+        if not (0 <= self.style_balance <= 1):
+            raise ValueError(f"style_balance must lie in [0, 1], got {self.style_balance}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
 
