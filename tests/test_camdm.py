@@ -498,6 +498,42 @@ def test_the_controller_guides_on_the_style_and_on_the_past_after_a_change(tiny,
         CAMDMController(ckpt, ControlConfig(guide_switch="future"))
 
 
+def test_gamma_styles_guide_the_named_style_harder_at_steady_state(tiny, monkeypatch):
+    ckpt, _ = tiny
+    config = ControlConfig(
+        M=3, switch_frames=4, guide="style", gamma=2.0, gamma_styles={"small": 4}
+    )
+    ctl = CAMDMController(ckpt, config)
+    seen = []
+    plan = ctl.sample_plan
+
+    def spy(past, style, trajectory, generator, gamma, guide="past"):
+        seen.append(gamma.tolist())
+        return plan(past, style, trajectory, generator, gamma, guide)
+
+    monkeypatch.setattr(ctl, "sample_plan", spy)
+    ctl.reset(walker("big"), n_characters=2, style=["big", "small"])
+    ctl.run(Commands.hold([1.0, 0.0], 0.0, 1, 9, batch=2), 9, torch.Generator().manual_seed(0))
+    # character 1 is 'small' from the start: 4 throughout; character 0 switched to 'small' at
+    # frame 0: gamma_switch for the re-plans at frames 0 and 3, then its style's 4
+    assert seen == [pytest.approx([0.7, 4.0])] * 2 + [pytest.approx([4.0, 4.0])]
+
+
+@pytest.mark.parametrize(
+    "styles, error, words",
+    [
+        ({"drunk": 3.0}, InputError, r"gamma_styles key must be one of the model's styles"),
+        ({"small": float("nan")}, InputError, r"gamma_styles\['small'\] must be a finite"),
+        ({"small": -1.0}, InputError, r"gamma_styles\['small'\] must be a finite number >= 0"),
+        ([("small", 3.0)], InputTypeError, r"gamma_styles must be a dict of style name"),
+    ],
+)
+def test_bad_gamma_styles_name_the_style_and_the_field(tiny, styles, error, words):
+    ckpt, _ = tiny
+    with pytest.raises(error, match=words):
+        CAMDMController(ckpt, ControlConfig(gamma_styles=styles))
+
+
 def test_the_controller_replans_sooner_while_turning(tiny):
     """M_turning applies while a character faces further than turning_deg from its command."""
     ckpt, _ = tiny

@@ -109,6 +109,10 @@ class ControlConfig:
     """HFTE on; False is the ablation w/o HFTE."""
     gamma: float = 1.0
     """CFG-PM scale while the style is unchanged (1: the conditional model alone)."""
+    gamma_styles: dict[str, float] | None = None
+    """CFG scale while the style is unchanged for the styles named here instead of ``gamma``
+    (our addition; None: ``gamma`` for every style). A style the model renders weakly can be
+    guided harder without sharpening, and sliding, the others."""
     gamma_switch: float = 0.7
     """CFG scale for re-plans within ``switch_frames`` of a style change."""
     switch_frames: int = 30
@@ -217,12 +221,29 @@ class CAMDMController:
         self.device = torch.device(device)
         self.layout = CAMDMLayout.from_dict(checkpoint.feature_layout)
         self.skeleton = Skeleton.from_dict(checkpoint.skeleton)
+        self._steady_gamma = self._gamma_of_each_style()  # (n_styles,)
         norms = checkpoint.normalizer
         self.window_norm = Normalizer.from_dict(norms["window"])
         self.traj_norm = Normalizer.from_dict(norms["traj"])
         self.schedule = checkpoint.schedule(self.device)
         self.history: Tensor | None = None
         self.planner = self._check_planner(planner)
+
+    def _gamma_of_each_style(self) -> Tensor:
+        """The steady-state CFG scale of every style: ``gamma``, or its ``gamma_styles`` entry."""
+        cfg = self.config
+        out = torch.full((len(self.layout.styles),), float(cfg.gamma))
+        if cfg.gamma_styles is None:
+            return out
+        if not isinstance(cfg.gamma_styles, dict):
+            raise InputTypeError(
+                "ControlConfig.gamma_styles must be a dict of style name to CFG scale, got "
+                f"{describe(cfg.gamma_styles)}"
+            )
+        for name, value in cfg.gamma_styles.items():
+            i = self.layout.style_index(name, "a ControlConfig.gamma_styles key")
+            out[i] = check_number(f"ControlConfig.gamma_styles[{name!r}]", value, low=0.0)
+        return out
 
     def _check_planner(self, planner: Any) -> Callable[..., Tensor] | None:
         if planner is None:
@@ -511,7 +532,8 @@ class CAMDMController:
             self._changed_at[changed] = self._frame
         since = self._frame - self._changed_at
         near = since < cfg.switch_frames
-        gamma = torch.where(near, cfg.gamma_switch, cfg.gamma).float()
+        steady = self._steady_gamma[cmd[2].cpu()]  # gamma, or the style's gamma_styles
+        gamma = torch.where(near, torch.tensor(cfg.gamma_switch), steady).float()
         guide: str | Tensor = cfg.guide
         if cfg.guide_switch not in (None, cfg.guide):  # per sample: True guides on the style
             guide = torch.where(near, cfg.guide_switch == "style", cfg.guide == "style")
