@@ -1,6 +1,7 @@
 """The locomotion yardstick (minimdm.studies.locomotion) on a tiny model of the real skeleton."""
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 import torch
@@ -151,3 +152,29 @@ def test_an_aamdm_motion_model_runs_the_same_yardstick(tmp_path):
     for r in rep["takes"]:
         assert r["speed_10s"] >= 0 and r["FS"] >= 0 and r["Bone.Err"] >= 0 and r["APD"] >= 0
         assert r["FS_data"] > 0 and len(r["speed_by_second"]) == 1
+
+
+def test_the_noise_probe_correlates_each_frame_with_the_last_and_keeps_unit_variance(monkeypatch):
+    """benchmarks/amdm_noise_probe.py: a frame's noise is rho * the last one's + fresh noise."""
+    import importlib
+
+    from minimdm.amdm import sampling
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    probe = importlib.import_module("amdm_noise_probe")
+    tapes = []
+    monkeypatch.setattr(sampling.Sampler, "frame", lambda self, c, g=None, **kw: tapes.append(g))
+    probe.correlated_frames(0.8)  # wraps the recorder (monkeypatch restores the original after)
+
+    class Fake:  # what the wrapper reads of a Sampler: its schedule's T
+        schedule = type("S", (), {"T": 4})()
+
+    g = torch.Generator().manual_seed(0)
+    cond = torch.zeros(400, 30)
+    for _ in range(3):
+        sampling.Sampler.frame(Fake(), cond, g)
+    a, b, c = (t.noise for t in tapes)
+    assert a.shape == (400, 30 * 5)
+    for x, y in ((a, b), (b, c)):
+        r = torch.corrcoef(torch.stack([x.flatten(), y.flatten()]))[0, 1]
+        assert abs(r - 0.8) < 0.02 and abs(y.std() - 1) < 0.02
