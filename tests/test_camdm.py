@@ -517,6 +517,10 @@ def test_gamma_styles_guide_the_named_style_harder_at_steady_state(tiny, monkeyp
     # character 1 is 'small' from the start: 4 throughout; character 0 switched to 'small' at
     # frame 0: gamma_switch for the re-plans at frames 0 and 3, then its style's 4
     assert seen == [pytest.approx([0.7, 4.0])] * 2 + [pytest.approx([4.0, 4.0])]
+    seen.clear()  # told to walk the other way: turning, so gamma, not the style's 4
+    ctl.reset(walker("big"), n_characters=2, style=["small", "small"])
+    ctl.run(Commands.hold([-1.0, 0.0], math.pi, 1, 3, batch=2), 3, torch.Generator().manual_seed(0))
+    assert seen == [pytest.approx([2.0, 2.0])]
 
 
 @pytest.mark.parametrize(

@@ -110,9 +110,11 @@ class ControlConfig:
     gamma: float = 1.0
     """CFG-PM scale while the style is unchanged (1: the conditional model alone)."""
     gamma_styles: dict[str, float] | None = None
-    """CFG scale while the style is unchanged for the styles named here instead of ``gamma``
-    (our addition; None: ``gamma`` for every style). A style the model renders weakly can be
-    guided harder without sharpening, and sliding, the others."""
+    """CFG scale for the styles named here instead of ``gamma``, while the style is unchanged
+    and the character faces within ``turning_deg`` of its command (our addition; None:
+    ``gamma`` for every style). A style the model renders weakly can be guided harder without
+    sharpening, and sliding, the others; while turning it gets ``gamma``, since a strong pull
+    towards the style's training takes, which never turn, slows the turn."""
     gamma_switch: float = 0.7
     """CFG scale for re-plans within ``switch_frames`` of a style change."""
     switch_frames: int = 30
@@ -475,12 +477,16 @@ class CAMDMController:
         result.positions = frame_positions(frames.double(), self.skeleton).float()
         return result
 
+    def _turning(self, cmd: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+        """(B,) bool: which characters face more than ``turning_deg`` from their command."""
+        facing = headings(self.history[:, -1:], self.skeleton.lateral_axis)[:, 0]
+        return wrap_angle(cmd[1] - facing).abs() > math.radians(self.config.turning_deg)
+
     def _needs_plan(self, cmd: tuple[Tensor, Tensor, Tensor]) -> bool:
         cfg = self.config
         M = cfg.M
         if cfg.M_turning is not None and self._plan is not None:
-            facing = headings(self.history[:, -1:], self.skeleton.lateral_axis)[:, 0]
-            if (wrap_angle(cmd[1] - facing).abs() > math.radians(cfg.turning_deg)).any():
+            if self._turning(cmd).any():
                 M = cfg.M_turning
         if self._plan is None or self._applied >= min(M, self.layout.future):
             return True
@@ -533,6 +539,7 @@ class CAMDMController:
         since = self._frame - self._changed_at
         near = since < cfg.switch_frames
         steady = self._steady_gamma[cmd[2].cpu()]  # gamma, or the style's gamma_styles
+        steady = torch.where(self._turning(cmd).cpu(), torch.tensor(float(cfg.gamma)), steady)
         gamma = torch.where(near, torch.tensor(cfg.gamma_switch), steady).float()
         guide: str | Tensor = cfg.guide
         if cfg.guide_switch not in (None, cfg.guide):  # per sample: True guides on the style
