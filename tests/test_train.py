@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as hst
 from torch import nn
 
@@ -541,3 +541,94 @@ def test_feature_scale_standardises_every_varying_feature_to_that_spread():
     torch.testing.assert_close(back, one["normalizer"].denormalize(x1), rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match="feature_scale must be a finite float > 0"):
         TrainConfig(feature_scale=0.0)
+
+
+@settings(deadline=None)  # the first example builds two networks
+@given(hst.integers(1, 6), hst.integers(0, 2**31 - 1))
+def test_a_delta_model_maps_a_frame_to_its_change_and_back(batch, seed):
+    """to_delta and from_delta are inverse; a model without delta_scale passes frames through."""
+    g = torch.Generator().manual_seed(seed)
+    k = torch.rand(D, generator=g) + 0.05
+    net = MLPDenoiser(DenoiserConfig(D, D, 8, 2, 8, "x0", delta_scale=k.tolist()))
+    plain = MLPDenoiser(DenoiserConfig(D, D, 8, 2, 8, "x0"))
+    x, cond = torch.randn(batch, D, generator=g), torch.randn(batch, D, generator=g)
+    z = net.to_delta(x, cond)
+    torch.testing.assert_close(z, (x - cond) / k)
+    torch.testing.assert_close(net.from_delta(z, cond), x)
+    assert net.is_delta and not plain.is_delta
+    assert torch.equal(plain.to_delta(x, cond), x) and torch.equal(plain.from_delta(x, cond), x)
+
+
+def test_a_delta_model_trains_on_the_change_and_samples_frames_inside_the_data_box(tmp_path):
+    """The checkpoint records each feature's spread of the change between frames; a perfect
+    x0-network of the change reconstructs the frame; sampled frames respect the frame clamp."""
+    from minimdm.amdm.losses import frame_loss
+    from minimdm.amdm.sampling import Sampler
+    from minimdm.amdm.train_config import delta_scale
+
+    feats = synthetic_features()
+    cfg = tiny(delta=True, predicts="x0", total_steps=4)
+    ckpt = train_amdm(cfg, tmp_path, feats, progress=False).checkpoint
+    windows = make_windows([torch.as_tensor(a) for a in feats], cfg.rollout)
+    k = torch.tensor(delta_scale(windows))
+    change = torch.cat([torch.as_tensor(a[1:] - a[:-1]) for a in feats])
+    assert k.shape == (D,) and (k > 0).all()
+    assert (k / change.std(0)).sub(1).abs().max() < 0.1  # the spread of the frame-to-frame change
+    net = ckpt.model
+    torch.testing.assert_close(net.delta_k, k)
+
+    class Oracle(nn.Module):  # returns the true clean change: the loss is 0, the prediction x
+        def __init__(self):
+            super().__init__()
+            self.is_delta, self.to_delta, self.from_delta = True, net.to_delta, net.from_delta
+
+        def forward(self, x_t, t, cond):
+            return self.z
+
+    oracle = Oracle()
+    x, cond = windows[:16, 1], windows[:16, 0]
+    oracle.z = net.to_delta(x, cond)
+    sched = NoiseSchedule("cosine", cfg.T)
+    loss, pred = frame_loss(oracle, x, cond, torch.Generator().manual_seed(0), "amdm", sched, "x0")
+    assert loss.abs().max() < 1e-10
+    torch.testing.assert_close(pred, x)
+
+    sampler = Sampler.load(ckpt)
+    lo, hi = (torch.as_tensor(b) for b in ckpt.diffusion["clip_x0"])
+    frame = sampler.frame(cond, torch.Generator().manual_seed(1))
+    assert frame.shape == cond.shape and ((frame >= lo) & (frame <= hi)).all()
+    with pytest.raises(InputError, match="delta model"):
+        sampler.frame(cond, hook=lambda t, x, x0: x)
+    with pytest.raises(ValueError, match="delta needs model_kind: amdm"):
+        tiny(model_kind="mse", delta=True)
+
+
+def test_cond_noise_perturbs_only_the_condition_the_denoiser_sees():
+    """The network sees x_{f-1} plus noise of the given spread; the target stays the frame."""
+    from minimdm.amdm.losses import frame_loss
+
+    seen = []
+
+    class Recorder(nn.Module):
+        def forward(self, x_t, t, cond):
+            seen.append(cond.clone())
+            return torch.zeros_like(x_t)
+
+    x, cond = torch.randn(4096, D), torch.randn(4096, D)
+    sched = NoiseSchedule("cosine", 8)
+    for spread in (0.0, 0.3):
+        g = torch.Generator().manual_seed(0)
+        loss, pred = frame_loss(Recorder(), x, cond, g, "amdm", sched, "x0", cond_noise=spread)
+        torch.testing.assert_close(loss, (x**2).mean(1))  # the target is x itself
+        assert abs(float((seen[-1] - cond).std()) - spread) < 0.01
+    delta = Recorder()  # a delta model's noise is in units of each feature's change k
+    delta.is_delta, delta.delta_k = True, torch.linspace(0.05, 0.5, D)
+    delta.to_delta = lambda x, c: (x - c) / delta.delta_k
+    delta.from_delta = lambda z, c: c + delta.delta_k * z
+    frame_loss(delta, x, cond, torch.Generator().manual_seed(0), "amdm", sched, "x0", cond_noise=2)
+    spread = (seen[-1] - cond).std(0) / delta.delta_k
+    assert (spread - 2).abs().max() < 0.1
+    with pytest.raises(ValueError, match="cond_noise needs model_kind: amdm"):
+        tiny(model_kind="mvae", cond_noise=0.1)
+    with pytest.raises(ValueError, match="cond_noise must be a finite float"):
+        tiny(cond_noise=-1.0)

@@ -147,34 +147,57 @@ def frame_loss(
     geometry: FrameGeometry | None = None,
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
+    cond_noise: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
     * amdm: the DDPM loss (A-MDM eq. 3), squared (``norm="l2"``) or absolute (``"l1"``), plus
       the ``geometry`` losses of the reconstruction if given, each level weighted by Min-SNR-γ
       when ``snr_gamma`` is given (:func:`~minimdm.diffusion.diffusion_loss`); the prediction is
-      :math:`\\hat x_0` at the drawn step.
+      :math:`\\hat x_0` at the drawn step. A delta model's chain denoises the change from
+      ``cond`` (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`); its prediction is still
+      the frame.
     * mse: :math:`\\|f(x_{f-1}) - x_f\\|^2 / D`; the prediction is :math:`f(x_{f-1})`.
     * mvae: :math:`\\|\\hat x_f - x_f\\|^2 / D + \\beta\\,\\mathrm{KL}(q \\| \\mathcal N(0, I)) / D`
       with :math:`q = q(z | x_f, x_{f-1})`, the β-ELBO; the prediction is the reconstruction
       through the posterior.
+
+    ``cond_noise > 0`` (amdm only) adds Gaussian noise of that spread (normalized units; for a
+    delta model, times each feature's :math:`k`) to the condition the network sees, the target
+    staying the recorded frame: at run time the model conditions on its own imperfect frames,
+    and this teaches it to lead them back to the data.
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
     if kind == "amdm":
         if schedule is None:
             raise ValueError("schedule is required for kind='amdm'")
+        if cond_noise > 0:  # a delta model's in units of each feature's change
+            net = getattr(model, "module", model)
+            spread = net.delta_k * cond_noise if getattr(net, "is_delta", False) else cond_noise
+            cond = cond + spread * torch.randn(
+                cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
+            )
+        net = getattr(model, "module", model)  # the network inside a DDP wrapper
+        delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
+
+        def frame_of(z: Tensor) -> Tensor:  # the frame of the chain's sample z
+            return net.from_delta(z, cond) if delta else z
+
         x0_loss = None
         if geometry is not None:
             ac = schedule.alphas_cumprod
 
-            def x0_loss(x0_hat: Tensor, t: Tensor) -> Tensor:
+            def x0_loss(z0_hat: Tensor, t: Tensor) -> Tensor:
+                x0_hat = frame_of(z0_hat)
                 return geometry(x0_hat, cond, x, ac.to(x0_hat.device)[t])
 
         loss_kw = dict(norm=norm, x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor)
-        return diffusion_loss(
-            model, schedule, x, cond, generator, predicts, reduce=False, **loss_kw
+        z = net.to_delta(x, cond) if delta else x  # the frame, or its change from cond
+        loss, z0_hat = diffusion_loss(
+            model, schedule, z, cond, generator, predicts, reduce=False, **loss_kw
         )
+        return loss, frame_of(z0_hat)
     if kind == "mse":
         pred = model(cond)
         return ((pred - x) ** 2).mean(1), pred
@@ -202,6 +225,7 @@ def window_loss(
     student_steps: int = 0,
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
+    cond_noise: float = 0.0,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -232,6 +256,7 @@ def window_loss(
     B, n1, _ = windows.shape
     model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
+    loss_kw["cond_noise"] = cond_noise
 
     def loss_of(x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
         """Eq. 3 (or the baseline's loss) per sample of frames x after ``cond``, and the

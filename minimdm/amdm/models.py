@@ -74,6 +74,11 @@ class DenoiserConfig:
     skip_yaw: list[float] | None = None
     """x0-prediction only: :math:`c_{skip}(t)` of the yaw rate d_r alone (the third feature of
     x), after ``skip_root``; None: as the other root features."""
+    delta_scale: list[float] | None = None
+    """None: the chain denoises the next frame :math:`x_f` itself. Else one scale :math:`k`
+    per feature (D): the chain denoises the change from the previous frame,
+    :math:`z_f = (x_f - x_{f-1}) / k`, with :math:`k` the spread of that change in the
+    training frames (:meth:`MLPDenoiser.to_delta`)."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -142,6 +147,30 @@ class MLPDenoiser(MLP):
                 raise ValueError(f"{name} must hold {len(skip)} weights, got {len(w)}")
             skip[:, cols] = w[:, None]
         self.register_buffer("skip", skip, persistent=False)
+        k = torch.empty(0)  # the delta scale k (D,), or empty
+        if config.delta_scale is not None:
+            k = torch.tensor(config.delta_scale, dtype=torch.float32)
+            if k.shape != (config.x_dim,) or not (k > 0).all():
+                raise ValueError(f"delta_scale must hold {config.x_dim} positive values")
+        self.register_buffer("delta_k", k, persistent=False)
+
+    @property
+    def is_delta(self) -> bool:
+        """Whether the chain denoises the change from the previous frame (``delta_scale``)."""
+        return self.delta_k.numel() > 0
+
+    def to_delta(self, x: Tensor, cond: Tensor) -> Tensor:
+        """What the chain denoises for a next frame ``x`` (B, D) after ``cond`` (B, D): ``x``
+        itself, or :math:`(x - x_{f-1}) / k` for a delta model. With features normalized by
+        their spread over all frames, the next frame given the previous one varies by a few
+        hundredths of that spread: the chain's least noisy levels bury it. The change, scaled
+        by its own spread, varies on the scale the noise schedule is made for."""
+        return (x - cond) / self.delta_k if self.is_delta else x
+
+    def from_delta(self, z: Tensor, cond: Tensor) -> Tensor:
+        """The next frame of a chain's sample ``z`` (B, D) after ``cond``: the inverse of
+        :meth:`to_delta`."""
+        return cond + self.delta_k * z if self.is_delta else z
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config

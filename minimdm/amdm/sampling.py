@@ -45,6 +45,7 @@ from minimdm.diffusion import (
     Hook,
     NoiseSchedule,
     StepSettings,
+    clamp_x0,
     clip_bounds,
     hook_list,
     reverse_chain,
@@ -322,6 +323,8 @@ class Sampler:
         inbetweening, A-MDM eq. 5).
         """
         net = self.net
+        if isinstance(net, MLPDenoiser) and net.is_delta:
+            return self._delta_frame(cond, generator, hook, t_start, x_start)
         if isinstance(net, MLPDenoiser):
             rule, levels = self.settings.chain(net, self.schedule, t_start)
             x, clamp = start_chain(
@@ -344,6 +347,29 @@ class Sampler:
             eps = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
             x = x + torch.as_tensor(self.noise, device=x.device, dtype=x.dtype) * eps
         return x
+
+    def _delta_frame(self, cond, generator, hook, t_start, x_start) -> Tensor:
+        """:meth:`frame` of a delta model: the chain runs on the change from ``cond``
+        (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`), its clamp still bounds the frame."""
+        net = self.net
+        if hook is not None:
+            raise InputError("hooks on x_t are not supported for a delta model yet")
+        rule, levels = self.settings.chain(net, self.schedule, t_start)
+        z_start = net.to_delta(x_start, cond) if x_start is not None else None
+        z, _ = start_chain(
+            tuple(cond.shape), self.schedule, cond=cond, generator=generator, x_start=z_start
+        )
+        clamp = []
+        bounds = clip_bounds(self.settings.clip_x0, self.dim, cond.device, cond.dtype)
+        if bounds is not None:  # the frame's box, as a box of the change
+
+            def clamp_frame(t: int, z_t: Tensor, z0_hat: Tensor) -> Tensor:
+                x0_hat = clamp_x0(net.from_delta(z0_hat, cond), bounds)
+                return net.to_delta(x0_hat, cond)
+
+            clamp = [clamp_frame]
+        z = reverse_chain(rule, z, levels, cond, generator, (), clamp)
+        return net.from_delta(z, cond)
 
 
 def _from_checkpoint(clip_x0: Any) -> bool:

@@ -54,6 +54,7 @@ from minimdm.amdm.losses import FrameGeometry, make_windows, window_loss
 from minimdm.amdm.train_config import (
     TrainConfig,
     build_network,
+    delta_scale,
     learning_rate,
     load_config,
     student_probability,
@@ -255,7 +256,7 @@ def _train(
     state = start_training(
         config,
         out_dir,
-        lambda: build_network(config, data.windows.shape[-1]).to(device),
+        lambda: build_network(config, data.windows.shape[-1], _delta(config, data)).to(device),
         torch.Generator(device=device),
         resume=resume,
         resumable=_RESUMABLE_CHANGES,
@@ -338,6 +339,11 @@ class _Data:
         )
 
 
+def _delta(config: TrainConfig, data: _Data) -> list[float] | None:
+    """A delta model's scale k, from the training windows (None for other models)."""
+    return delta_scale(data.windows) if config.delta else None
+
+
 def _loss_kw(config: TrainConfig, data: _Data, device: torch.device) -> dict[str, Any]:
     """The keyword arguments of :func:`window_loss` shared by training and evaluation."""
     return dict(
@@ -363,6 +369,7 @@ def _batch_loss(
         student_steps=config.student_steps,
         snr_gamma=config.snr_gamma,
         snr_floor=config.snr_floor,
+        cond_noise=config.cond_noise,
         geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )
 

@@ -6,7 +6,7 @@ import math
 import os
 from dataclasses import dataclass
 
-from torch import nn
+from torch import Tensor, nn
 
 from minimdm import config as configs
 from minimdm.amdm.losses import MODEL_KINDS
@@ -107,6 +107,14 @@ class TrainConfig:
     geo_bones: float = 0.0
     """Weight of the loss that keeps a predicted frame's bone lengths those of the recording
     (amdm only; :class:`~minimdm.amdm.losses.FrameGeometry`); 0: none."""
+    delta: bool = False
+    """Denoise the change from the previous frame instead of the frame (amdm only):
+    :math:`z_f = (x_f - x_{f-1}) / k` with :math:`k` each feature's spread of that change in the
+    training windows (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`)."""
+    cond_noise: float = 0.0
+    """Spread of Gaussian noise added to the condition :math:`x_{f-1}` the denoiser sees in
+    training (normalized units, or for a ``delta`` model units of each feature's change; amdm
+    only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -216,6 +224,12 @@ class TrainConfig:
             w = getattr(self, name)
             if not (w >= 0 and math.isfinite(w)):
                 raise ValueError(f"{name} must be a finite float >= 0, got {w}")
+        if not (self.cond_noise >= 0 and math.isfinite(self.cond_noise)):
+            raise ValueError(f"cond_noise must be a finite float >= 0, got {self.cond_noise}")
+        if self.cond_noise > 0 and self.model_kind != "amdm":
+            raise ValueError(f"cond_noise needs model_kind: amdm, got {self.model_kind!r}")
+        if self.delta and self.model_kind != "amdm":
+            raise ValueError(f"delta needs model_kind: amdm, got {self.model_kind!r}")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
 
@@ -245,8 +259,11 @@ def learning_rate(config: TrainConfig, step: int) -> float:
     return cosine_lr(step, config.total_steps, config.lr, config.lr_min)
 
 
-def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
-    """The network of ``config.model_kind`` for frames of dimension ``x_dim``."""
+def build_network(
+    config: TrainConfig, x_dim: int, delta_scale: list[float] | None = None
+) -> nn.Module:
+    """The network of ``config.model_kind`` for frames of dimension ``x_dim``; a delta model
+    (``config.delta``) needs the ``delta_scale`` of its data (:func:`delta_scale`)."""
     if config.model_kind == "amdm":
         from minimdm.diffusion import NoiseSchedule
 
@@ -270,8 +287,26 @@ def build_network(config: TrainConfig, x_dim: int) -> nn.Module:
             mask,
             weights(config.skip_sigma_root),
             weights(config.skip_sigma_yaw),
+            _checked_delta_scale(config, x_dim, delta_scale),
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
         return MLPRegressor(x_dim, x_dim, config.width, config.depth)
     return MVAE(MVAEConfig(x_dim, x_dim, config.latent_dim, config.width, config.depth))
+
+
+def delta_scale(windows: Tensor, floor: float = 1e-3) -> list[float]:
+    """Each feature's spread (D,) of the change between consecutive frames of ``windows``
+    (W, N + 1, D), at least ``floor``: the scale :math:`k` of a delta model."""
+    change = (windows[:, 1] - windows[:, 0]).double()  # (W, D)
+    return change.std(0).clamp_min(floor).float().tolist()
+
+
+def _checked_delta_scale(
+    config: TrainConfig, x_dim: int, scale: list[float] | None
+) -> list[float] | None:
+    if not config.delta:
+        return None
+    if scale is None or len(scale) != x_dim:
+        raise ValueError(f"a delta model needs delta_scale: {x_dim} values, got {scale!r}")
+    return list(scale)
