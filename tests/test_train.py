@@ -556,6 +556,17 @@ def test_a_delta_model_maps_a_frame_to_its_change_and_back(batch, seed):
     torch.testing.assert_close(z, (x - cond) / k)
     torch.testing.assert_close(net.from_delta(z, cond), x)
     assert net.is_delta and not plain.is_delta
+    root = MLPDenoiser(
+        DenoiserConfig(
+            D, D, 8, 2, 8, "x0", delta_scale=k.tolist(), delta_mask=[1.0] * 3 + [0.0] * (D - 3)
+        )
+    )
+    z = root.to_delta(x, cond)  # the root's three features as a change, the joints as they are
+    torch.testing.assert_close(z[:, :3], (x - cond)[:, :3] / k[:3])
+    assert torch.equal(z[:, 3:], x[:, 3:])
+    torch.testing.assert_close(root.from_delta(z, cond), x)
+    cfg = TrainConfig(delta=True, delta_features="root", T=6, width=8, depth=2)
+    assert build_network(cfg, D, k.tolist()).delta_m.tolist() == [1.0] * 3 + [0.0] * (D - 3)
     assert torch.equal(plain.to_delta(x, cond), x) and torch.equal(plain.from_delta(x, cond), x)
 
 
@@ -599,6 +610,8 @@ def test_a_delta_model_trains_on_the_change_and_samples_frames_inside_the_data_b
     assert frame.shape == cond.shape and ((frame >= lo) & (frame <= hi)).all()
     with pytest.raises(InputError, match="delta model"):
         sampler.frame(cond, hook=lambda t, x, x0: x)
+    with pytest.raises(ValueError, match="delta_features must be one of"):
+        tiny(delta=True, delta_features="joints")
     with pytest.raises(ValueError, match="delta needs model_kind: amdm"):
         tiny(model_kind="mse", delta=True)
 

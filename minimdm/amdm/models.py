@@ -79,6 +79,9 @@ class DenoiserConfig:
     per feature (D): the chain denoises the change from the previous frame,
     :math:`z_f = (x_f - x_{f-1}) / k`, with :math:`k` the spread of that change in the
     training frames (:meth:`MLPDenoiser.to_delta`)."""
+    delta_mask: list[float] | None = None
+    """With ``delta_scale``: one 0/1 per feature, 1 where the chain denoises the change (the
+    others are denoised as they are, :math:`k` ignored); None: all features."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -147,12 +150,19 @@ class MLPDenoiser(MLP):
                 raise ValueError(f"{name} must hold {len(skip)} weights, got {len(w)}")
             skip[:, cols] = w[:, None]
         self.register_buffer("skip", skip, persistent=False)
-        k = torch.empty(0)  # the delta scale k (D,), or empty
+        k = m = torch.empty(0)  # the delta scale k (D,) and mask (D,), or empty
         if config.delta_scale is not None:
             k = torch.tensor(config.delta_scale, dtype=torch.float32)
             if k.shape != (config.x_dim,) or not (k > 0).all():
                 raise ValueError(f"delta_scale must hold {config.x_dim} positive values")
+            m = torch.ones(config.x_dim)
+            if config.delta_mask is not None:
+                m = torch.tensor(config.delta_mask, dtype=torch.float32)
+                if m.shape != (config.x_dim,) or not ((m == 0) | (m == 1)).all():
+                    raise ValueError(f"delta_mask must hold {config.x_dim} zeros and ones")
+            k = torch.where(m > 0, k, torch.ones_like(k))
         self.register_buffer("delta_k", k, persistent=False)
+        self.register_buffer("delta_m", m, persistent=False)
 
     @property
     def is_delta(self) -> bool:
@@ -165,12 +175,12 @@ class MLPDenoiser(MLP):
         their spread over all frames, the next frame given the previous one varies by a few
         hundredths of that spread: the chain's least noisy levels bury it. The change, scaled
         by its own spread, varies on the scale the noise schedule is made for."""
-        return (x - cond) / self.delta_k if self.is_delta else x
+        return (x - self.delta_m * cond) / self.delta_k if self.is_delta else x
 
     def from_delta(self, z: Tensor, cond: Tensor) -> Tensor:
         """The next frame of a chain's sample ``z`` (B, D) after ``cond``: the inverse of
         :meth:`to_delta`."""
-        return cond + self.delta_k * z if self.is_delta else z
+        return self.delta_m * cond + self.delta_k * z if self.is_delta else z
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config

@@ -111,6 +111,9 @@ class TrainConfig:
     """Denoise the change from the previous frame instead of the frame (amdm only):
     :math:`z_f = (x_f - x_{f-1}) / k` with :math:`k` each feature's spread of that change in the
     training windows (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`)."""
+    delta_features: str = "all"
+    """Which features a ``delta`` model denoises as a change: 'all', or 'root' (the root's
+    velocity and yaw rate d_x, d_y, d_r; the joints are denoised as they are)."""
     cond_noise: float = 0.0
     """Spread of Gaussian noise added to the condition :math:`x_{f-1}` the denoiser sees in
     training (normalized units, or for a ``delta`` model units of each feature's change; amdm
@@ -228,6 +231,10 @@ class TrainConfig:
             raise ValueError(f"cond_noise must be a finite float >= 0, got {self.cond_noise}")
         if self.cond_noise > 0 and self.model_kind != "amdm":
             raise ValueError(f"cond_noise needs model_kind: amdm, got {self.model_kind!r}")
+        if self.delta_features not in SKIP_FEATURES:
+            raise ValueError(
+                f"delta_features must be one of {SKIP_FEATURES}, got {self.delta_features!r}"
+            )
         if self.delta and self.model_kind != "amdm":
             raise ValueError(f"delta needs model_kind: amdm, got {self.model_kind!r}")
         if not 0 <= self.ema_decay < 1:
@@ -275,7 +282,7 @@ def build_network(
         skip = weights(config.skip_sigma) if config.skip_sigma > 0 else None
         mask = None
         if skip is not None and config.skip_features == "root":
-            mask = [1.0] * 3 + [0.0] * (x_dim - 3)  # d_x, d_y, d_r (FeatureLayout's first 3)
+            mask = _root_mask(x_dim)
         dc = DenoiserConfig(
             x_dim,
             x_dim,
@@ -288,6 +295,7 @@ def build_network(
             weights(config.skip_sigma_root),
             weights(config.skip_sigma_yaw),
             _checked_delta_scale(config, x_dim, delta_scale),
+            _root_mask(x_dim) if config.delta and config.delta_features == "root" else None,
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
@@ -310,3 +318,8 @@ def _checked_delta_scale(
     if scale is None or len(scale) != x_dim:
         raise ValueError(f"a delta model needs delta_scale: {x_dim} values, got {scale!r}")
     return list(scale)
+
+
+def _root_mask(x_dim: int) -> list[float]:
+    """1 for the root's d_x, d_y, d_r (FeatureLayout's first three features), 0 elsewhere."""
+    return [1.0] * 3 + [0.0] * (x_dim - 3)
