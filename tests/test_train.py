@@ -565,6 +565,7 @@ def test_a_delta_model_maps_a_frame_to_its_change_and_back(batch, seed):
     torch.testing.assert_close(z[:, :3], (x - cond)[:, :3] / k[:3])
     assert torch.equal(z[:, 3:], x[:, 3:])
     torch.testing.assert_close(root.from_delta(z, cond), x)
+    assert torch.equal(root.delta_spread, k)  # cond_noise's unit, every feature's own change
     cfg = TrainConfig(delta=True, delta_features="root", T=6, width=8, depth=2)
     assert build_network(cfg, D, k.tolist()).delta_m.tolist() == [1.0] * 3 + [0.0] * (D - 3)
     assert torch.equal(plain.to_delta(x, cond), x) and torch.equal(plain.from_delta(x, cond), x)
@@ -636,6 +637,7 @@ def test_cond_noise_perturbs_only_the_condition_the_denoiser_sees():
         assert abs(float((seen[-1] - cond).std()) - spread) < 0.01
     delta = Recorder()  # a delta model's noise is in units of each feature's change k
     delta.is_delta, delta.delta_k = True, torch.linspace(0.05, 0.5, D)
+    delta.delta_spread = delta.delta_k
     delta.to_delta = lambda x, c: (x - c) / delta.delta_k
     delta.from_delta = lambda z, c: c + delta.delta_k * z
     frame_loss(delta, x, cond, torch.Generator().manual_seed(0), "amdm", sched, "x0", cond_noise=2)

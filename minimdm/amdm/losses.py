@@ -174,7 +174,8 @@ def frame_loss(
             raise ValueError("schedule is required for kind='amdm'")
         if cond_noise > 0:  # a delta model's in units of each feature's change
             net = getattr(model, "module", model)
-            spread = net.delta_k * cond_noise if getattr(net, "is_delta", False) else cond_noise
+            delta = getattr(net, "is_delta", False)
+            spread = net.delta_spread * cond_noise if delta else cond_noise
             cond = cond + spread * torch.randn(
                 cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
             )

@@ -160,6 +160,8 @@ class MLPDenoiser(MLP):
                 m = torch.tensor(config.delta_mask, dtype=torch.float32)
                 if m.shape != (config.x_dim,) or not ((m == 0) | (m == 1)).all():
                     raise ValueError(f"delta_mask must hold {config.x_dim} zeros and ones")
+        self.register_buffer("delta_spread", k, persistent=False)  # every feature's change
+        if k.numel():
             k = torch.where(m > 0, k, torch.ones_like(k))
         self.register_buffer("delta_k", k, persistent=False)
         self.register_buffer("delta_m", m, persistent=False)
