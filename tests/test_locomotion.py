@@ -109,6 +109,27 @@ def test_the_study_grid_pools_seeds_and_joins_table1(tmp_path):
         study_grid(path, ["c"])
 
 
+def test_study_contents_pools_one_number_per_content_over_seeds(tmp_path):
+    import json
+
+    from minimdm.studies.locomotion import study_contents
+
+    def loco(name, seed, walk, run):
+        contents = {"walk": {"speed_ratio_10s": walk}, "run": {"speed_ratio_10s": run}}
+        return {"name": name, "protocol": {"seed": seed}, "all": {}, "contents": contents}
+
+    rows = [loco("a", 0, 1.0, 0.4), loco("a", 1, 1.4, 0.6), loco("b", 0, 2.0, 0.5)]
+    path = tmp_path / "study.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    table = study_contents(path, ["b", "a"], contents=("walk", "run"))
+    assert list(table) == ["b", "a"]
+    assert table["a"]["walk"] == pytest.approx((1.2, 0.2))
+    assert table["a"]["run"] == pytest.approx((0.5, 0.1))
+    assert table["b"] == {"walk": 2.0, "run": 0.5}
+    with pytest.raises(ValueError, match="no yardstick row of the run 'c'"):
+        study_contents(path, ["c"])
+
+
 def test_the_yardstick_table_pools_one_tag_per_content_and_model(tmp_path):
     import json
 

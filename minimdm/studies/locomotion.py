@@ -313,6 +313,47 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
     3 seeds). A run scored twice with one seed keeps the later row. Ready for
     :func:`minimdm.utils.format_table`.
     """
+    loco, table1 = _study_records(path)
+    order = list(names) if names is not None else list(dict.fromkeys([*loco, *table1]))
+    out: dict[str, dict[str, Any]] = {}
+    for name in order:
+        if name not in loco and name not in table1:
+            raise ValueError(f"{path} holds no row of the run {name!r}")
+        row: dict[str, Any] = {}
+        seeds = [rec["all"] for rec in loco.get(name, {}).values()]
+        for header, key in STUDY_COLUMNS.items():
+            row[header] = _over_seeds([s[key] for s in seeds if key in s])
+        row["seeds"] = len(seeds)
+        for k in ("APD", "ADE", "FDE"):
+            cell = table1.get(name, {}).get(k)
+            row[f"T1 {k}"] = (cell["mean"], cell["std"]) if cell else None
+        out[name] = row
+    return out
+
+
+def study_contents(
+    path: str | Path,
+    names: list[str],
+    key: str = "speed_ratio_10s",
+    contents: tuple[str, ...] = LOCOMOTION,
+) -> dict[str, dict[str, Any]]:
+    """One number of the yardstick per content for each study run of ``names``: ``key`` of its
+    content pools (default: the speed held at 10 s, as a share of the takes' own) as
+    ``(mean, std)`` over the sampling seeds scored, or a plain number for one seed. Ready for
+    :func:`minimdm.utils.format_table`."""
+    loco, _ = _study_records(path)
+    out: dict[str, dict[str, Any]] = {}
+    for name in names:
+        if name not in loco:
+            raise ValueError(f"{path} holds no yardstick row of the run {name!r}")
+        seeds = list(loco[name].values())
+        out[name] = {c: _over_seeds([s["contents"][c][key] for s in seeds]) for c in contents}
+    return out
+
+
+def _study_records(path: str | Path) -> tuple[dict[str, dict[int, dict]], dict[str, dict]]:
+    """The study file's yardstick records by run and sampling seed (a later row of the same
+    seed wins), and its Table 1 records by run."""
     loco: dict[str, dict[int, dict]] = {}
     table1: dict[str, dict] = {}
     for line in Path(path).read_text().splitlines():
@@ -320,26 +361,15 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
         if "table1" in rec:
             table1[rec["name"]] = rec["table1"]
         elif "all" in rec:
-            loco.setdefault(rec["name"], {})[rec["protocol"]["seed"]] = rec["all"]
-    order = list(names) if names is not None else list(dict.fromkeys([*loco, *table1]))
-    out: dict[str, dict[str, Any]] = {}
-    for name in order:
-        if name not in loco and name not in table1:
-            raise ValueError(f"{path} holds no row of the run {name!r}")
-        row: dict[str, Any] = {}
-        seeds = list(loco.get(name, {}).values())
-        for header, key in STUDY_COLUMNS.items():
-            vals = [s[key] for s in seeds if key in s]
-            if len(vals) > 1:
-                row[header] = (float(np.mean(vals)), float(np.std(vals)))
-            else:
-                row[header] = float(vals[0]) if vals else None
-        row["seeds"] = len(seeds)
-        for k in ("APD", "ADE", "FDE"):
-            cell = table1.get(name, {}).get(k)
-            row[f"T1 {k}"] = (cell["mean"], cell["std"]) if cell else None
-        out[name] = row
-    return out
+            loco.setdefault(rec["name"], {})[rec["protocol"]["seed"]] = rec
+    return loco, table1
+
+
+def _over_seeds(vals: list[float]) -> tuple[float, float] | float | None:
+    """``(mean, std)`` of several seeds' values, the value of one, None of none."""
+    if len(vals) > 1:
+        return float(np.mean(vals)), float(np.std(vals))
+    return float(vals[0]) if vals else None
 
 
 YARDSTICK_COLUMNS = {
