@@ -536,3 +536,26 @@ def test_camdm_plan_bad_inputs_are_refused_by_name(camdm):
         fast(past, **{**ok, "style": style.float()})
     with pytest.raises(InputError, match="steps: a CAMDM checkpoint runs its own 4 steps"):
         frame_graph(camdm[1], steps=2)
+
+
+def test_a_delta_models_graph_matches_its_eager_frame():
+    """A model that denoises the change from the previous frame (TrainConfig.delta) traces its
+    change of variables and its frame clamp into the same one graph."""
+    from minimdm.amdm.models import DenoiserConfig, MLPDenoiser
+    from minimdm.amdm.sampling import Sampler
+    from minimdm.diffusion import NoiseSchedule
+    from minimdm.fast import AMDMFrame
+
+    D = 6
+    torch.manual_seed(0)
+    k = (0.1 + torch.rand(D)).tolist()
+    net = MLPDenoiser(DenoiserConfig(D, D, 16, 3, 8, "x0", delta_scale=k))
+    box = ([-1.0] * D, [1.0] * D)
+    cm = Sampler.load(net, schedule=NoiseSchedule("cosine", 8), clip_x0=box)
+    graph = AMDMFrame(cm)
+    fast = FastFrame(export_onnx(graph))
+    state = 0.5 * torch.randn(4, D, generator=torch.Generator().manual_seed(1))
+    eager = graph.frame(state, torch.Generator().manual_seed(7))
+    out = fast(state, torch.Generator().manual_seed(7))
+    assert (out - eager).abs().max().item() < TOL
+    assert ((out >= -1) & (out <= 1)).all()  # the frame's box, not the change's
