@@ -28,11 +28,17 @@ LAYOUT = FeatureLayout(("root", "head"))
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
+DELTA = (0.2 + torch.rand(D, generator=torch.Generator().manual_seed(5))).tolist()
+"""A delta model's k: the chain denoises (x_f - x_{f-1}) / k (TrainConfig.delta)."""
+
+
 class Recorder(MLPDenoiser):
     """A tiny denoiser that records every call: (level t, input x_t)."""
 
-    def __init__(self, predicts: str = "eps") -> None:
-        super().__init__(DenoiserConfig(D, D, width=16, depth=3, time_dim=8, predicts=predicts))
+    def __init__(self, predicts: str = "eps", delta: bool = False) -> None:
+        k = DELTA if delta else None
+        cfg = DenoiserConfig(D, D, width=16, depth=3, time_dim=8, predicts=predicts, delta_scale=k)
+        super().__init__(cfg)
         self.calls: list[tuple[int, torch.Tensor]] = []
 
     def forward(self, x_t, t, cond=None):
@@ -40,9 +46,11 @@ class Recorder(MLPDenoiser):
         return super().forward(x_t, t, cond)
 
 
-def tiny_ckpt(tmp_path, predicts="eps", T=6):
+def tiny_ckpt(tmp_path, predicts="eps", T=6, delta=False):
     torch.manual_seed(0)
-    model = MLPDenoiser(DenoiserConfig(D, D, width=32, depth=3, time_dim=8, predicts=predicts))
+    k = DELTA if delta else None
+    cfg = DenoiserConfig(D, D, width=32, depth=3, time_dim=8, predicts=predicts, delta_scale=k)
+    model = MLPDenoiser(cfg)
     norm = Normalizer(torch.randn(D) * 0.1, torch.rand(D) + 0.5)
     meta = {
         "normalizer": norm,
@@ -116,9 +124,11 @@ def test_inbetween_t_start_follows_eq5():
         C.inbetween_t_start(6, 5, T)
 
 
-def test_inbetween_starts_each_chain_from_the_noised_keyframe(tmp_path):
+@pytest.mark.parametrize("delta", [False, True])
+def test_inbetween_starts_each_chain_from_the_noised_keyframe(tmp_path, delta):
+    """A delta model's chain starts from the keyframe's change from the previous frame."""
     ck = tiny_ckpt(tmp_path, T=8)
-    net = Recorder()
+    net = Recorder(delta=delta)
     cm = Sampler.load(net, schedule=ck.schedule(), normalizer=Normalizer.from_dict(ck.normalizer))
     key = torch.randn(D) * 0.1
     N = 6
@@ -127,20 +137,25 @@ def test_inbetween_starts_each_chain_from_the_noised_keyframe(tmp_path):
     starts = [net.calls[i][0] for i in firsts]
     assert starts == [C.inbetween_t_start(f, N, 8) for f in range(1, N + 1)] + [7, 7]
     assert m.info["t_start"] == starts[:N] + [-1, -1]
-    # a chain's first input is the normalized keyframe noised to its level
+    # a chain's first input is the normalized keyframe, as the chain sees it, noised to its level
     key_n = cm.normalize(key)
-    for i, t in zip(firsts[:N], starts[:N], strict=True):
+    conds = torch.cat([cm.normalize(start_state())[None], m.normalized[: N - 1]])  # (N, D)
+    for i, t, cond in zip(firsts[:N], starts[:N], conds, strict=True):
         x = net.calls[i][1][0]
+        key_t = cm.chain_target(key_n[None], cond[None])[0]
         scale = NoiseSchedule("cosine", 8).sqrt_one_minus_alphas_cumprod[t]
-        assert (x - NoiseSchedule("cosine", 8).sqrt_alphas_cumprod[t] * key_n).std() < 1.5 * scale
+        assert (x - NoiseSchedule("cosine", 8).sqrt_alphas_cumprod[t] * key_t).std() < 1.5 * scale
     assert m.features.shape == (N + 2, D)
 
 
 # ------------------------------------------------------------------ inpainting
 
 
-def test_fully_masked_inpainting_reproduces_the_target_exactly(tmp_path):
-    ck = tiny_ckpt(tmp_path)
+@pytest.mark.parametrize("delta", [False, True])
+def test_fully_masked_inpainting_reproduces_the_target_exactly(tmp_path, delta):
+    """Also for a delta model, whose chain denoises each target's change from its frame's
+    condition."""
+    ck = tiny_ckpt(tmp_path, delta=delta)
     F = 7
     targets = torch.randn(F, D, generator=torch.Generator().manual_seed(3))
     m = C.inpaint(ck, start_state(), targets, torch.ones(F, D), torch.Generator().manual_seed(0))
@@ -150,8 +165,9 @@ def test_fully_masked_inpainting_reproduces_the_target_exactly(tmp_path):
     assert m.positions.shape == (F, J, 3)
 
 
-def test_partial_inpainting_keeps_the_mask_and_samples_the_rest(tmp_path):
-    ck = tiny_ckpt(tmp_path)
+@pytest.mark.parametrize("delta", [False, True])
+def test_partial_inpainting_keeps_the_mask_and_samples_the_rest(tmp_path, delta):
+    ck = tiny_ckpt(tmp_path, delta=delta)
     B, F = 2, 5
     targets = torch.full((F, D), float("nan"))
     mask = torch.zeros(D, dtype=torch.bool)

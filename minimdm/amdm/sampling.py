@@ -320,7 +320,9 @@ class Sampler:
         For a denoiser this runs one reverse chain (:attr:`settings`: DDPM over all T levels or
         DDIM over fewer) with ``hook`` on :math:`x_t` (inpainting, RL residuals...); ``t_start``
         and ``x_start`` start the chain at that level from that sample (keyframe
-        inbetweening, A-MDM eq. 5).
+        inbetweening, A-MDM eq. 5). For a delta model the chain's variable is the change from
+        ``cond``: ``hook`` and ``x_start`` see it (:meth:`chain_target`); the result is the
+        frame.
         """
         net = self.net
         if isinstance(net, MLPDenoiser) and net.is_delta:
@@ -348,16 +350,22 @@ class Sampler:
             x = x + torch.as_tensor(self.noise, device=x.device, dtype=x.dtype) * eps
         return x
 
+    def chain_target(self, x: Tensor, cond: Tensor) -> Tensor:
+        """What the chain of the frame after ``cond`` (B, D) denoises for a frame ``x`` (B, D),
+        both normalized: ``x`` itself, or for a delta model its change from ``cond``
+        (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`). Hooks and ``x_start`` of
+        :meth:`frame` live in this variable: inpainting noises ``chain_target`` of its targets,
+        inbetweening of its keyframe."""
+        net = self.net
+        return net.to_delta(x, cond) if isinstance(net, MLPDenoiser) and net.is_delta else x
+
     def _delta_frame(self, cond, generator, hook, t_start, x_start) -> Tensor:
         """:meth:`frame` of a delta model: the chain runs on the change from ``cond``
         (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`), its clamp still bounds the frame."""
         net = self.net
-        if hook is not None:
-            raise InputError("hooks on x_t are not supported for a delta model yet")
         rule, levels = self.settings.chain(net, self.schedule, t_start)
-        z_start = net.to_delta(x_start, cond) if x_start is not None else None
         z, _ = start_chain(
-            tuple(cond.shape), self.schedule, cond=cond, generator=generator, x_start=z_start
+            tuple(cond.shape), self.schedule, cond=cond, generator=generator, x_start=x_start
         )
         clamp = []
         bounds = clip_bounds(self.settings.clip_x0, self.dim, cond.device, cond.dtype)
@@ -368,7 +376,7 @@ class Sampler:
                 return net.to_delta(x0_hat, cond)
 
             clamp = [clamp_frame]
-        z = reverse_chain(rule, z, levels, cond, generator, (), clamp)
+        z = reverse_chain(rule, z, levels, cond, generator, hook_list(hook), clamp)
         return net.from_delta(z, cond)
 
 

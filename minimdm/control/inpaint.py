@@ -120,7 +120,8 @@ def inpaint(
     m = m.to(cm.device)
 
     def step(f: int, cond: Tensor) -> Tensor:  # frame f (B, D) under eq. 4's hook
-        hook = inpaint_hook(cm.schedule, tgt_n[:, f - 1], m[:, f - 1], generator, int(stops[f - 1]))
+        target = cm.chain_target(tgt_n[:, f - 1], cond)  # what the chain denoises (B, D)
+        hook = inpaint_hook(cm.schedule, target, m[:, f - 1], generator, int(stops[f - 1]))
         return cm.frame(cond, generator, hook=hook)
 
     out = autoregress(step, cm.normalize(x0), F, who=_character, desc="inpaint", progress=progress)
@@ -237,7 +238,8 @@ def inbetween(
         k, prev = key["k"], key["prev"]
         if k < len(ats):
             t0 = inbetween_t_start(f - prev, ats[k] - prev, T)
-            x_start = q_sample(cm.schedule, keys_n[:, k], t0, generator=generator)  # (B, D)
+            key_t = cm.chain_target(keys_n[:, k], cond)  # the keyframe as the chain sees it
+            x_start = q_sample(cm.schedule, key_t, t0, generator=generator)  # (B, D)
             x = cm.frame(cond, generator, t_start=t0, x_start=x_start)
             if f == ats[k]:
                 key["k"], key["prev"] = k + 1, f
