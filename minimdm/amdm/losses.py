@@ -172,15 +172,13 @@ def frame_loss(
     if kind == "amdm":
         if schedule is None:
             raise ValueError("schedule is required for kind='amdm'")
+        net = getattr(model, "module", model)  # the network inside a DDP wrapper
+        delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
         if cond_noise > 0:  # a delta model's in units of each feature's change
-            net = getattr(model, "module", model)
-            delta = getattr(net, "is_delta", False)
             spread = net.delta_spread * cond_noise if delta else cond_noise
             cond = cond + spread * torch.randn(
                 cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
             )
-        net = getattr(model, "module", model)  # the network inside a DDP wrapper
-        delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
 
         def frame_of(z: Tensor) -> Tensor:  # the frame of the chain's sample z
             return net.from_delta(z, cond) if delta else z
