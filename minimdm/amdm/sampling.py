@@ -325,19 +325,21 @@ class Sampler:
         frame.
         """
         net = self.net
-        if isinstance(net, MLPDenoiser) and net.is_delta:
-            return self._delta_frame(cond, generator, hook, t_start, x_start)
         if isinstance(net, MLPDenoiser):
             rule, levels = self.settings.chain(net, self.schedule, t_start)
+            delta = net.is_delta
             x, clamp = start_chain(
                 tuple(cond.shape),
                 self.schedule,
                 cond=cond,
                 generator=generator,
                 x_start=x_start,
-                clip_x0=self.settings.clip_x0,
+                clip_x0=None if delta else self.settings.clip_x0,
             )  # x at the chain's first level, and the clamp of x0_hat
-            return reverse_chain(rule, x, levels, cond, generator, hook_list(hook), clamp)
+            if delta:  # the chain runs on the change; its clamp still bounds the frame
+                clamp = self._frame_clamp(cond)
+            x = reverse_chain(rule, x, levels, cond, generator, hook_list(hook), clamp)
+            return net.from_delta(x, cond) if delta else x
         if hook is not None or t_start is not None or x_start is not None:
             raise ValueError(
                 f"hook, t_start and x_start need a diffusion model, got {type(net).__name__}"
@@ -359,25 +361,18 @@ class Sampler:
         net = self.net
         return net.to_delta(x, cond) if isinstance(net, MLPDenoiser) and net.is_delta else x
 
-    def _delta_frame(self, cond, generator, hook, t_start, x_start) -> Tensor:
-        """:meth:`frame` of a delta model: the chain runs on the change from ``cond``
-        (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`), its clamp still bounds the frame."""
+    def _frame_clamp(self, cond: Tensor) -> list:
+        """A delta model's clamp of :math:`\\hat z_0`: the frame's box (``settings.clip_x0``)
+        seen from the change after ``cond``; [] without a box."""
         net = self.net
-        rule, levels = self.settings.chain(net, self.schedule, t_start)
-        z, _ = start_chain(
-            tuple(cond.shape), self.schedule, cond=cond, generator=generator, x_start=x_start
-        )
-        clamp = []
         bounds = clip_bounds(self.settings.clip_x0, self.dim, cond.device, cond.dtype)
-        if bounds is not None:  # the frame's box, as a box of the change
+        if bounds is None:
+            return []
 
-            def clamp_frame(t: int, z_t: Tensor, z0_hat: Tensor) -> Tensor:
-                x0_hat = clamp_x0(net.from_delta(z0_hat, cond), bounds)
-                return net.to_delta(x0_hat, cond)
+        def clamp_frame(t: int, z_t: Tensor, z0_hat: Tensor) -> Tensor:
+            return net.to_delta(clamp_x0(net.from_delta(z0_hat, cond), bounds), cond)
 
-            clamp = [clamp_frame]
-        z = reverse_chain(rule, z, levels, cond, generator, hook_list(hook), clamp)
-        return net.from_delta(z, cond)
+        return [clamp_frame]
 
 
 def _from_checkpoint(clip_x0: Any) -> bool:
