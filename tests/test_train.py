@@ -568,6 +568,14 @@ def test_a_delta_model_maps_a_frame_to_its_change_and_back(batch, seed):
     assert torch.equal(root.delta_spread, k)  # cond_noise's unit, every feature's own change
     cfg = TrainConfig(delta=True, delta_features="root", T=6, width=8, depth=2)
     assert build_network(cfg, D, k.tolist()).delta_m.tolist() == [1.0] * 3 + [0.0] * (D - 3)
+    layout = FeatureLayout(("hips", "foot"))  # 'not_positions': all but the joint positions
+    cfg = TrainConfig(delta=True, delta_features="not_positions", T=6, width=8, depth=2)
+    m = build_network(cfg, layout.dim, [0.5] * layout.dim).delta_m
+    assert m[layout.joint_pos].eq(0).all() and m.sum() == layout.dim - 3 * layout.n_joints
+    cfg = TrainConfig(delta=True, delta_features="joint_motion", T=6, width=8, depth=2)
+    m = build_network(cfg, layout.dim, [0.5] * layout.dim).delta_m  # j_v and j_o only
+    assert m[:3].eq(0).all() and m[layout.joint_pos].eq(0).all()
+    assert m[layout.joint_vel].eq(1).all() and m[layout.joint_rot].eq(1).all()
     assert torch.equal(plain.to_delta(x, cond), x) and torch.equal(plain.from_delta(x, cond), x)
 
 

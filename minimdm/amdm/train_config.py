@@ -21,6 +21,7 @@ from minimdm.amdm.models import (
 from minimdm.nn import cosine_lr
 
 SKIP_FEATURES = ("all", "root")
+DELTA_FEATURES = ("all", "root", "not_positions", "joint_motion")
 
 __all__ = ["TrainConfig", "load_config", "student_probability", "learning_rate", "build_network"]
 
@@ -112,8 +113,12 @@ class TrainConfig:
     :math:`z_f = (x_f - x_{f-1}) / k` with :math:`k` each feature's spread of that change in the
     training windows (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`)."""
     delta_features: str = "all"
-    """Which features a ``delta`` model denoises as a change: 'all', or 'root' (the root's
-    velocity and yaw rate d_x, d_y, d_r; the joints are denoised as they are)."""
+    """Which features a ``delta`` model denoises as a change: 'all'; 'root' (the root's
+    velocity and yaw rate d_x, d_y, d_r; the joints are denoised as they are); or
+    'not_positions' (all but the joint positions j_p, which are denoised as they are, so that
+    their errors do not add up from frame to frame); or 'joint_motion' (only the joints'
+    velocities and rotations j_v, j_o: the root's motion and the joint positions are denoised
+    as they are)."""
     cond_noise: float = 0.0
     """Spread of Gaussian noise added to the condition :math:`x_{f-1}` the denoiser sees in
     training (normalized units, or for a ``delta`` model units of each feature's change; amdm
@@ -231,9 +236,9 @@ class TrainConfig:
             raise ValueError(f"cond_noise must be a finite float >= 0, got {self.cond_noise}")
         if self.cond_noise > 0 and self.model_kind != "amdm":
             raise ValueError(f"cond_noise needs model_kind: amdm, got {self.model_kind!r}")
-        if self.delta_features not in SKIP_FEATURES:
+        if self.delta_features not in DELTA_FEATURES:
             raise ValueError(
-                f"delta_features must be one of {SKIP_FEATURES}, got {self.delta_features!r}"
+                f"delta_features must be one of {DELTA_FEATURES}, got {self.delta_features!r}"
             )
         if self.delta and self.model_kind != "amdm":
             raise ValueError(f"delta needs model_kind: amdm, got {self.model_kind!r}")
@@ -295,7 +300,7 @@ def build_network(
             weights(config.skip_sigma_root),
             weights(config.skip_sigma_yaw),
             _checked_delta_scale(config, x_dim, delta_scale),
-            _root_mask(x_dim) if config.delta and config.delta_features == "root" else None,
+            _delta_mask(config, x_dim),
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
@@ -318,6 +323,18 @@ def _checked_delta_scale(
     if scale is None or len(scale) != x_dim:
         raise ValueError(f"a delta model needs delta_scale: {x_dim} values, got {scale!r}")
     return list(scale)
+
+
+def _delta_mask(config: TrainConfig, x_dim: int) -> list[float] | None:
+    """A delta model's mask (:attr:`DenoiserConfig.delta_mask`) for ``delta_features``: None
+    (every feature) for 'all' and for models that are not delta models."""
+    if not config.delta or config.delta_features == "all":
+        return None
+    if config.delta_features == "root":
+        return _root_mask(x_dim)
+    n_joints = (x_dim - 3) // 12  # FeatureLayout: 3 + 12 J, the positions right after the root
+    root = 0.0 if config.delta_features == "joint_motion" else 1.0
+    return [root] * 3 + [0.0] * (3 * n_joints) + [1.0] * (x_dim - 3 - 3 * n_joints)
 
 
 def _root_mask(x_dim: int) -> list[float]:
