@@ -559,3 +559,8 @@ def test_a_delta_models_graph_matches_its_eager_frame():
     out = fast(state, torch.Generator().manual_seed(7))
     assert (out - eager).abs().max().item() < TOL
     assert ((out >= -1) & (out <= 1)).all()  # the frame's box, not the change's
+    chain = graph.describe()["chain"]  # a game engine reads what the chain denoises
+    assert chain["k"] == net.delta_k.tolist() and chain["m"] == [1.0] * D
+    bare = MLPDenoiser(DenoiserConfig(D, D, 16, 3, 8, "x0"))
+    plain = AMDMFrame(Sampler.load(bare, schedule=NoiseSchedule("cosine", 8), clip_x0=box))
+    assert "k" not in plain.describe()["chain"]

@@ -250,6 +250,21 @@ def _amdm_description(cm) -> dict[str, Any]:
         "schedule": _schedule_dict(cm.schedule),
         "normalizer": cm.normalizer.to_dict() if cm.normalizer is not None else None,
         "state": {"what": "the previous frame, normalized: (features - mean) / std"},
+        "chain": _chain_description(cm.net),
+    }
+
+
+def _chain_description(net) -> dict[str, Any]:
+    """What the reverse chain inside the graph denoises: the frame, or for a delta model
+    (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`) its change from the previous frame. The
+    graph maps it back, so its output is always the next frame."""
+    if not getattr(net, "is_delta", False):
+        return {"what": "the next frame, normalized"}
+    return {
+        "what": "z = (x - m * x_prev) / k: the change from the previous frame where m is 1, the "
+        "frame itself where m is 0 (normalized units); the output is x = m * x_prev + k * z",
+        "k": net.delta_k.tolist(),
+        "m": net.delta_m.tolist(),
     }
 
 
