@@ -107,6 +107,11 @@ def test_the_study_grid_pools_seeds_and_joins_table1(tmp_path):
     assert list(study_grid(path, ["b"])) == ["b"]
     with pytest.raises(ValueError, match="no row of the run 'c'"):
         study_grid(path, ["c"])
+    from minimdm.studies.locomotion import study_table1  # the whole Table 1 record of a run
+
+    assert study_table1(path, ["a"]) == {"a": {"APD": (50.0, 2.0)}}
+    with pytest.raises(ValueError, match="no Table 1 row of the run 'b'"):
+        study_table1(path, ["b"])
 
 
 def test_study_contents_pools_one_number_per_content_over_seeds(tmp_path):

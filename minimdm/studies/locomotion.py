@@ -331,6 +331,23 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
     return out
 
 
+def study_table1(path: str | Path, names: list[str]) -> dict[str, dict[str, tuple[float, float]]]:
+    """Table 1 of the study runs ``names`` scored with ``--table1``: every metric as ``(mean,
+    std)`` over Table 1's 3 seeds, in Table 1's column order, the shape of
+    :func:`minimdm.studies.amdm_tables.read_results`, so that a study run and the shipped
+    models' rows can share one table."""
+    from minimdm.amdm.evaluation import TABLE1_COLUMNS
+
+    _, table1 = _study_records(path)
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for name in names:
+        if name not in table1:
+            raise ValueError(f"{path} holds no Table 1 row of the run {name!r}")
+        cells = {k: (v["mean"], v["std"]) for k, v in table1[name].items()}
+        out[name] = {c: cells[c] for c in TABLE1_COLUMNS if c in cells}
+    return out
+
+
 def study_contents(
     path: str | Path,
     names: list[str],
