@@ -14,7 +14,13 @@ from minimdm import files
 from minimdm.amdm.losses import make_windows, window_loss
 from minimdm.amdm.models import DenoiserConfig, MLPDenoiser, MLPRegressor
 from minimdm.amdm.train import LOCOMOTION, train_amdm, window_weights
-from minimdm.amdm.train_config import TrainConfig, build_network, load_config, student_probability
+from minimdm.amdm.train_config import (
+    TrainConfig,
+    build_network,
+    load_config,
+    motion_mask,
+    student_probability,
+)
 from minimdm.checkpoint import (
     CheckpointMismatchError,
     load_checkpoint,
@@ -653,3 +659,39 @@ def test_cond_noise_perturbs_only_the_condition_the_denoiser_sees():
         tiny(model_kind="mvae", cond_noise=0.1)
     with pytest.raises(ValueError, match="cond_noise must be a finite float"):
         tiny(cond_noise=-1.0)
+
+
+def test_motion_condition_noise_reaches_the_root_and_joint_displacements_in_frame_units():
+    """cond_noise_motion adds noise of its spread, in frame units, to d_x, d_y, d_r and j_v only,
+    independent of a delta model's cond_noise (in units of each feature's change)."""
+    from minimdm.amdm.losses import frame_loss
+    from minimdm.amdm.train import _cond_spread
+
+    layout = FeatureLayout(("hips", "knee", "foot"))
+    m = torch.tensor(motion_mask(layout.dim))
+    assert m[layout.root_vel].eq(1).all() and m[2] == 1 and m[layout.joint_vel].eq(1).all()
+    assert m[layout.joint_pos].eq(0).all() and m[layout.joint_rot].eq(0).all()
+    k = torch.linspace(0.05, 0.5, layout.dim)
+    kw = dict(delta=True, delta_features="not_positions", T=6, width=8, depth=2)
+    cfg = TrainConfig(cond_noise=0.5, cond_noise_motion=0.4, **kw)
+    net = build_network(cfg, layout.dim, k.tolist())
+    spread = _cond_spread(cfg, net)
+    torch.testing.assert_close(spread, ((0.5 * k) ** 2 + (0.4 * m) ** 2).sqrt())
+    assert _cond_spread(TrainConfig(cond_noise=0.5, **kw), net) == 0.5  # the loss scales by k
+
+    seen = []
+
+    class Recorder(nn.Module):
+        def forward(self, x_t, t, cond):
+            seen.append(cond.clone())
+            return torch.zeros_like(x_t)
+
+    x, cond = torch.randn(8192, layout.dim), torch.randn(8192, layout.dim)
+    g = torch.Generator().manual_seed(0)
+    sched = NoiseSchedule("cosine", 8)
+    frame_loss(Recorder(), x, cond, g, "amdm", sched, "x0", cond_noise=0.3 * m)
+    torch.testing.assert_close((seen[-1] - cond).std(0), 0.3 * m, atol=0.01, rtol=0)
+    with pytest.raises(ValueError, match="cond_noise_motion needs model_kind: amdm"):
+        tiny(model_kind="mse", cond_noise_motion=0.1)
+    with pytest.raises(ValueError, match="cond_noise_motion must be a finite float"):
+        tiny(cond_noise_motion=float("nan"))

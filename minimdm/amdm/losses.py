@@ -147,7 +147,7 @@ def frame_loss(
     geometry: FrameGeometry | None = None,
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
-    cond_noise: float = 0.0,
+    cond_noise: float | Tensor = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
@@ -165,7 +165,9 @@ def frame_loss(
     ``cond_noise > 0`` (amdm only) adds Gaussian noise of that spread (normalized units; for a
     delta model, times each feature's :math:`k`) to the condition the network sees, the target
     staying the recorded frame: at run time the model conditions on its own imperfect frames,
-    and this teaches it to lead them back to the data.
+    and this teaches it to lead them back to the data. A tensor (D,) gives each feature's own
+    spread, in normalized frame units for every model (:func:`~minimdm.amdm.train` builds it
+    from ``TrainConfig.cond_noise`` and ``cond_noise_motion``).
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -174,8 +176,10 @@ def frame_loss(
             raise ValueError("schedule is required for kind='amdm'")
         net = getattr(model, "module", model)  # the network inside a DDP wrapper
         delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
-        if cond_noise > 0:  # a delta model's in units of each feature's change
-            spread = net.delta_spread * cond_noise if delta else cond_noise
+        if isinstance(cond_noise, Tensor) or cond_noise > 0:
+            spread = cond_noise  # a float is, for a delta model, in units of each feature's change
+            if delta and not isinstance(spread, Tensor):
+                spread = net.delta_spread * cond_noise
             cond = cond + spread * torch.randn(
                 cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
             )
@@ -224,7 +228,7 @@ def window_loss(
     student_steps: int = 0,
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
-    cond_noise: float = 0.0,
+    cond_noise: float | Tensor = 0.0,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 

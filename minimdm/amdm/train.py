@@ -57,6 +57,7 @@ from minimdm.amdm.train_config import (
     delta_scale,
     learning_rate,
     load_config,
+    motion_mask,
     student_probability,
 )
 from minimdm.checkpoint import Checkpoint, load_checkpoint
@@ -356,6 +357,21 @@ def _loss_kw(config: TrainConfig, data: _Data, device: torch.device) -> dict[str
     )
 
 
+def _cond_spread(config: TrainConfig, model: nn.Module) -> float | torch.Tensor:
+    """The spread of the condition noise: ``cond_noise`` as a float (the loss reads it in a
+    delta model's units of change), or with ``cond_noise_motion`` each feature's spread (D,) in
+    normalized frame units, the two noises independent."""
+    if config.cond_noise_motion <= 0:
+        return config.cond_noise
+    net = getattr(model, "module", model)
+    x_dim = net.config.x_dim
+    base = torch.full((x_dim,), float(config.cond_noise))
+    if net.is_delta:
+        base = net.delta_spread.cpu() * config.cond_noise
+    motion = torch.tensor(motion_mask(x_dim)) * config.cond_noise_motion
+    return (base**2 + motion**2).sqrt().to(net.delta_spread.device)
+
+
 def _batch_loss(
     config: TrainConfig, data: _Data, state: TrainState, world: distributed.World
 ) -> Callable[[int], StepOut]:
@@ -369,7 +385,7 @@ def _batch_loss(
         student_steps=config.student_steps,
         snr_gamma=config.snr_gamma,
         snr_floor=config.snr_floor,
-        cond_noise=config.cond_noise,
+        cond_noise=_cond_spread(config, state.model),
         geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )
 

@@ -23,7 +23,14 @@ from minimdm.nn import cosine_lr
 SKIP_FEATURES = ("all", "root")
 DELTA_FEATURES = ("all", "root", "not_positions", "joint_motion")
 
-__all__ = ["TrainConfig", "load_config", "student_probability", "learning_rate", "build_network"]
+__all__ = [
+    "TrainConfig",
+    "load_config",
+    "student_probability",
+    "learning_rate",
+    "build_network",
+    "motion_mask",
+]
 
 
 @dataclass
@@ -123,6 +130,12 @@ class TrainConfig:
     """Spread of Gaussian noise added to the condition :math:`x_{f-1}` the denoiser sees in
     training (normalized units, or for a ``delta`` model units of each feature's change; amdm
     only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
+    cond_noise_motion: float = 0.0
+    """Spread of Gaussian noise added, on top of ``cond_noise``, to the condition's motion
+    features only: the root's d_x, d_y, d_r and the joint displacements j_v, in normalized
+    frame units (a feature's spread over the training frames, for every model). The pace then
+    has to be read from the pose as well, so a pace error is not carried on frame after frame
+    (amdm only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -232,10 +245,12 @@ class TrainConfig:
             w = getattr(self, name)
             if not (w >= 0 and math.isfinite(w)):
                 raise ValueError(f"{name} must be a finite float >= 0, got {w}")
-        if not (self.cond_noise >= 0 and math.isfinite(self.cond_noise)):
-            raise ValueError(f"cond_noise must be a finite float >= 0, got {self.cond_noise}")
-        if self.cond_noise > 0 and self.model_kind != "amdm":
-            raise ValueError(f"cond_noise needs model_kind: amdm, got {self.model_kind!r}")
+        for name in ("cond_noise", "cond_noise_motion"):
+            spread = getattr(self, name)
+            if not (spread >= 0 and math.isfinite(spread)):
+                raise ValueError(f"{name} must be a finite float >= 0, got {spread}")
+            if spread > 0 and self.model_kind != "amdm":
+                raise ValueError(f"{name} needs model_kind: amdm, got {self.model_kind!r}")
         if self.delta_features not in DELTA_FEATURES:
             raise ValueError(
                 f"delta_features must be one of {DELTA_FEATURES}, got {self.delta_features!r}"
@@ -335,6 +350,13 @@ def _delta_mask(config: TrainConfig, x_dim: int) -> list[float] | None:
     n_joints = (x_dim - 3) // 12  # FeatureLayout: 3 + 12 J, the positions right after the root
     root = 0.0 if config.delta_features == "joint_motion" else 1.0
     return [root] * 3 + [0.0] * (3 * n_joints) + [1.0] * (x_dim - 3 - 3 * n_joints)
+
+
+def motion_mask(x_dim: int) -> list[float]:
+    """1 for a frame's motion features, the root's d_x, d_y, d_r and the joint displacements
+    j_v (FeatureLayout: 3 + 12 J, j_v after the positions j_p), 0 for the pose j_p, j_o."""
+    n_joints = (x_dim - 3) // 12
+    return [1.0] * 3 + [0.0] * (3 * n_joints) + [1.0] * (3 * n_joints) + [0.0] * (6 * n_joints)
 
 
 def _root_mask(x_dim: int) -> list[float]:
