@@ -10,6 +10,9 @@ winner is trained at full length with ``minimdm train``. ``--table1`` scores the
 rank.
 
     python benchmarks/amdm_study.py x0 --set predicts=x0 clip_x0=data --steps 10000
+
+``--sampling-steps`` and ``--eta`` score a trained run with another sampler (DDIM, A-MDM §3.3)
+under its own ``--label``, to tell what the sampler's noise does from what the network does.
 """
 
 from __future__ import annotations
@@ -48,6 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="*", default=[0], help="sampling seeds to score")
     ap.add_argument("--eval-only", action="store_true", help="score the run as it is")
     ap.add_argument("--table1", action="store_true", help="score on Table 1 instead")
+    ap.add_argument("--sampling-steps", type=int, default=None, help="denoising steps (DDIM)")
+    ap.add_argument("--eta", type=float, default=1.0, help="DDIM stochasticity, with those steps")
+    ap.add_argument("--label", default=None, help="the row's name (default: the run's)")
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -75,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     heldout = [r["heldout_loss"] for r in log if "heldout_loss" in r]
     head = {
         "benchmark": "amdm_study",
-        "name": args.name,
+        "name": args.label or args.name,
         "base": Path(args.base).name,
         "changes": changes,
         "config": asdict(config),
@@ -96,7 +102,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"name": args.name, **{k: v["mean"] for k, v in table.items()}}))
         return 0
     for seed in args.seeds:
-        p = LocomotionProtocol(n_samples=args.samples, long_seconds=args.long_seconds, seed=seed)
+        p = LocomotionProtocol(
+            n_samples=args.samples,
+            long_seconds=args.long_seconds,
+            seed=seed,
+            steps=args.sampling_steps,
+            eta=args.eta,
+        )
         t1 = time.perf_counter()
         rep = locomotion_report(ckpt, p)
         row = {
