@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
                 "moving_60s", "FS_ratio", "Jnt.Accel_ratio", "Bone.Err", "APD")  # fmt: skip
         summary = {k: round(a[k], 3) for k in keys if k in a}
         by = {c: round(v["speed_ratio_10s"], 2) for c, v in rep["contents"].items()}
-        print(json.dumps({"name": args.name, "seed": seed, **summary, "by_content": by}))
+        print(json.dumps({"name": head["name"], "seed": seed, **summary, "by_content": by}))
     return 0
 
 

@@ -582,6 +582,9 @@ def test_a_delta_model_maps_a_frame_to_its_change_and_back(batch, seed):
     m = build_network(cfg, layout.dim, [0.5] * layout.dim).delta_m  # j_v and j_o only
     assert m[:3].eq(0).all() and m[layout.joint_pos].eq(0).all()
     assert m[layout.joint_vel].eq(1).all() and m[layout.joint_rot].eq(1).all()
+    cfg = TrainConfig(delta=True, delta_features="rotations", T=6, width=8, depth=2)
+    m = build_network(cfg, layout.dim, [0.5] * layout.dim).delta_m  # j_o only
+    assert m[layout.joint_rot].eq(1).all() and m.sum() == 6 * layout.n_joints
     assert torch.equal(plain.to_delta(x, cond), x) and torch.equal(plain.from_delta(x, cond), x)
 
 

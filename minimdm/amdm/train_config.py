@@ -21,7 +21,7 @@ from minimdm.amdm.models import (
 from minimdm.nn import cosine_lr
 
 SKIP_FEATURES = ("all", "root")
-DELTA_FEATURES = ("all", "root", "not_positions", "joint_motion")
+DELTA_FEATURES = ("all", "root", "not_positions", "joint_motion", "rotations")
 
 __all__ = [
     "TrainConfig",
@@ -125,7 +125,8 @@ class TrainConfig:
     'not_positions' (all but the joint positions j_p, which are denoised as they are, so that
     their errors do not add up from frame to frame); or 'joint_motion' (only the joints'
     velocities and rotations j_v, j_o: the root's motion and the joint positions are denoised
-    as they are)."""
+    as they are); or 'rotations' (only the joint rotations j_o: every position and velocity,
+    and with them the pace, is denoised as it is)."""
     cond_noise: float = 0.0
     """Spread of Gaussian noise added to the condition :math:`x_{f-1}` the denoiser sees in
     training (normalized units, or for a ``delta`` model units of each feature's change; amdm
@@ -348,6 +349,8 @@ def _delta_mask(config: TrainConfig, x_dim: int) -> list[float] | None:
     if config.delta_features == "root":
         return _root_mask(x_dim)
     n_joints = (x_dim - 3) // 12  # FeatureLayout: 3 + 12 J, the positions right after the root
+    if config.delta_features == "rotations":  # j_o, the last 6 J
+        return [0.0] * (3 + 6 * n_joints) + [1.0] * (6 * n_joints)
     root = 0.0 if config.delta_features == "joint_motion" else 1.0
     return [root] * 3 + [0.0] * (3 * n_joints) + [1.0] * (x_dim - 3 - 3 * n_joints)
 
