@@ -694,6 +694,14 @@ def test_motion_condition_noise_reaches_the_root_and_joint_displacements_in_fram
     sched = NoiseSchedule("cosine", 8)
     frame_loss(Recorder(), x, cond, g, "amdm", sched, "x0", cond_noise=0.3 * m)
     torch.testing.assert_close((seen[-1] - cond).std(0), 0.3 * m, atol=0.01, rtol=0)
+    uniform = dict(cond_noise_draw="uniform")
+    frame_loss(Recorder(), x, cond, g, "amdm", sched, "x0", cond_noise=0.3 * m, **uniform)
+    power = (seen[-1] - cond)[:, m > 0].pow(2).mean(1)  # each condition's own size, up to 0.3
+    assert power.min() < 0.03**2  # some conditions nearly clean; on average E[u^2] = 1/3 of it
+    torch.testing.assert_close(power.mean(), torch.tensor(0.3**2 / 3), atol=0.002, rtol=0)
+    assert torch.equal(seen[-1][:, m == 0], cond[:, m == 0])
+    with pytest.raises(ValueError, match="cond_noise_draw must be 'fixed' or 'uniform'"):
+        tiny(cond_noise_draw="normal")
     with pytest.raises(ValueError, match="cond_noise_motion needs model_kind: amdm"):
         tiny(model_kind="mse", cond_noise_motion=0.1)
     with pytest.raises(ValueError, match="cond_noise_motion must be a finite float"):

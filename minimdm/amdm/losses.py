@@ -148,6 +148,7 @@ def frame_loss(
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
     cond_noise: float | Tensor = 0.0,
+    cond_noise_draw: str = "fixed",
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
@@ -167,7 +168,8 @@ def frame_loss(
     staying the recorded frame: at run time the model conditions on its own imperfect frames,
     and this teaches it to lead them back to the data. A tensor (D,) gives each feature's own
     spread, in normalized frame units for every model (:func:`~minimdm.amdm.train` builds it
-    from ``TrainConfig.cond_noise`` and ``cond_noise_motion``).
+    from ``TrainConfig.cond_noise`` and ``cond_noise_motion``). ``cond_noise_draw="uniform"``
+    scales each sample's noise by a factor drawn uniformly in [0, 1].
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -180,9 +182,13 @@ def frame_loss(
             spread = cond_noise  # a float is, for a delta model, in units of each feature's change
             if delta and not isinstance(spread, Tensor):
                 spread = net.delta_spread * cond_noise
-            cond = cond + spread * torch.randn(
+            noise = spread * torch.randn(
                 cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
             )
+            if cond_noise_draw == "uniform":  # each condition's own size, in [0, 1] of it
+                size = torch.rand(cond.shape[0], 1, generator=generator, device=cond.device)
+                noise = noise * size.to(cond.dtype)
+            cond = cond + noise
 
         def frame_of(z: Tensor) -> Tensor:  # the frame of the chain's sample z
             return net.from_delta(z, cond) if delta else z
@@ -229,6 +235,7 @@ def window_loss(
     snr_gamma: float | None = None,
     snr_floor: float = 0.0,
     cond_noise: float | Tensor = 0.0,
+    cond_noise_draw: str = "fixed",
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -259,7 +266,7 @@ def window_loss(
     B, n1, _ = windows.shape
     model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
-    loss_kw["cond_noise"] = cond_noise
+    loss_kw.update(cond_noise=cond_noise, cond_noise_draw=cond_noise_draw)
 
     def loss_of(x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
         """Eq. 3 (or the baseline's loss) per sample of frames x after ``cond``, and the

@@ -386,6 +386,7 @@ def _batch_loss(
         snr_gamma=config.snr_gamma,
         snr_floor=config.snr_floor,
         cond_noise=_cond_spread(config, state.model),
+        cond_noise_draw=config.cond_noise_draw,
         geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )
 

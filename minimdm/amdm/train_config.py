@@ -137,6 +137,11 @@ class TrainConfig:
     frame units (a feature's spread over the training frames, for every model). The pace then
     has to be read from the pose as well, so a pace error is not carried on frame after frame
     (amdm only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
+    cond_noise_draw: str = "fixed"
+    """How each training condition's noise is sized: 'fixed' (every condition gets the spreads
+    ``cond_noise`` and ``cond_noise_motion``), or 'uniform' (each condition's spreads are
+    those times a factor drawn uniformly in [0, 1], so that the model meets departures of every
+    size up to the spread: small ones to keep, large ones to undo)."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -252,6 +257,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a finite float >= 0, got {spread}")
             if spread > 0 and self.model_kind != "amdm":
                 raise ValueError(f"{name} needs model_kind: amdm, got {self.model_kind!r}")
+        if self.cond_noise_draw not in ("fixed", "uniform"):
+            raise ValueError(
+                f"cond_noise_draw must be 'fixed' or 'uniform', got {self.cond_noise_draw!r}"
+            )
         if self.delta_features not in DELTA_FEATURES:
             raise ValueError(
                 f"delta_features must be one of {DELTA_FEATURES}, got {self.delta_features!r}"
