@@ -53,9 +53,28 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
         assert r["speed_ratio_10s"] == pytest.approx(r["speed_10s"] / r["take_speed"])
         assert 0.0 <= r["moving_60s"] <= 1.0
         assert r["FS"] >= 0 and r["FS_data"] > 0 and r["Bone.Err"] >= 0 and r["APD"] > 0
+        assert 0.0 <= r["at_box_60s"] <= 1.0  # the model clamps to its training frames' range
     all_ = rep["all"]
     assert all_["worst_speed_ratio_10s"] <= all_["speed_ratio_10s"]
     assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])
+
+
+def test_at_box_is_the_share_of_the_roots_features_on_the_clamps_edge(ckpt):
+    """Root features pressed to the box count, in the denoiser's own normalized units; the
+    joints do not."""
+    from minimdm.diffusion import clip_bounds
+    from minimdm.motion.features import Normalizer
+    from minimdm.studies.locomotion import _on_box
+
+    norm = Normalizer.from_dict(ckpt.normalizer)
+    D = len(ckpt.normalizer["mean"])
+    lo, hi = clip_bounds(ckpt.diffusion["clip_x0"], D)
+    x = torch.zeros(3, 2, 5, D)  # normalized: each take's futures, 5 frames of the tail
+    x[1, :, :, 0], x[1, :, :, 2] = hi[0], lo[2]  # two of the root's three features on the edge
+    x[2, :, :, 3:] = hi[3:]  # only joints on the edge
+    x[2, 0, :2, 1] = lo[1]  # and d_y on it in 2 of one future's 5 frames
+    share = _on_box(ckpt, norm.denormalize(x))
+    torch.testing.assert_close(share, torch.tensor([0.0, 2 / 3, 2 / 30], dtype=torch.float64))
 
 
 def test_eta_reaches_the_ddim_sampler(ckpt):

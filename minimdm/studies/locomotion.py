@@ -17,7 +17,10 @@ rollout started from, the recording of the same actor and content:
 * **foot sliding** and **joint acceleration** over the 10 s, against the same measures of the
   take itself (:mod:`minimdm.motion.metrics`), and **bone error** against the take's actor;
 * **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
-  repeats one future scores low).
+  repeats one future scores low);
+* **at the box** after 60 s, for a denoiser that clamps its frames (``clip_x0``): the share of
+  the root's d_x, d_y, d_r over the last tail that sit on the clamp's edge. A future that runs
+  away ends there, pressed against the training frames' range.
 
 :func:`locomotion_report` returns one record per take, per content and for all takes;
 ``benchmarks/locomotion.py`` prints them as JSON lines. Any motion checkpoint runs: A-MDM, the
@@ -223,6 +226,7 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
     )
     t0 = time.perf_counter()
     feats, pos = _generate(ckpt, takes, p, n_frames)  # (C, K, F, D), (C, K, F, J, 3)
+    on_box = _on_box(ckpt, feats[..., n_frames - tail : n_frames, :])  # (C,) or None
     gen_seconds = time.perf_counter() - t0
     second = round(fps)
     rows = []
@@ -263,6 +267,8 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             row["along_ratio_60s"] = _ratio(float(tail_mean(along, n_frames).mean()), ref["speed"])
             row["moving_60s"] = float((s60 >= p.moving_ratio * ref["speed"]).double().mean())
             row["Bone.Err_60s"] = metrics.bone_length_error(x_i, sk.parents, ref["bones"])
+            if on_box is not None:
+                row["at_box_60s"] = float(on_box[i])
         rows.append(row)
     return {
         "checkpoint": str(ckpt.paths.weights.parent),
@@ -273,6 +279,25 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
         "all": _pool(rows),
         "seconds": round(gen_seconds, 1),
     }
+
+
+def _on_box(ckpt: Checkpoint, tail: Tensor) -> Tensor | None:
+    """Per take (C,), the share of the root's d_x, d_y, d_r in the rollout ``tail`` (C, K, F,
+    D), feature units, on the edge of the box the denoiser clamps its frames to (within a
+    thousandth of a feature's spread); None for a model without one."""
+    from minimdm.diffusion import clip_bounds
+    from minimdm.motion.features import Normalizer
+
+    box = ckpt.diffusion.get("clip_x0")
+    if box is None or ckpt.normalizer is None:
+        return None
+    bounds = clip_bounds(box, tail.shape[-1], dtype=torch.float64)
+    if isinstance(bounds, float):  # the box [-c, c]
+        bounds = (torch.full((3,), -bounds), torch.full((3,), bounds))
+    lo, hi = bounds
+    x = Normalizer.from_dict(ckpt.normalizer).normalize(tail.float()).double()[..., :3]
+    edge = (x <= lo[:3] + 1e-3) | (x >= hi[:3] - 1e-3)
+    return edge.double().mean((1, 2, 3))
 
 
 def _pool(rows: list[dict]) -> dict[str, float]:
@@ -294,6 +319,7 @@ def _pool(rows: list[dict]) -> dict[str, float]:
 STUDY_COLUMNS = {
     "speed 10 s": "speed_ratio_10s",
     "worst take": "worst_speed_ratio_10s",
+    "speed 60 s": "speed_ratio_60s",
     "moving 60 s": "moving_60s",
     "FS ×data": "FS_ratio",
     "accel ×data": "Jnt.Accel_ratio",
