@@ -325,6 +325,7 @@ STUDY_COLUMNS = {
     "accel ×data": "Jnt.Accel_ratio",
     "bone cm": "Bone.Err",
     "APD 5 s": "APD",
+    "at box 60 s": "at_box_60s",
 }
 """The study grid's columns (header: key of a yardstick record's ``all`` pool)."""
 
