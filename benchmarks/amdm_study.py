@@ -122,7 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         emit(row, args.out, quiet=True)
         a = rep["all"]
         keys = ("speed_ratio_10s", "worst_speed_ratio_10s", "along_ratio_10s", "speed_ratio_60s",
-                "moving_60s", "FS_ratio", "Jnt.Accel_ratio", "Bone.Err", "APD", "at_box_60s")  # fmt: skip
+                "moving_60s", "at_box_60s", "FS_ratio", "Jnt.Accel_ratio", "Bone.Err",
+                "APD")  # fmt: skip
         summary = {k: round(a[k], 3) for k in keys if k in a}
         by = {c: round(v["speed_ratio_10s"], 2) for c, v in rep["contents"].items()}
         print(json.dumps({"name": head["name"], "seed": seed, **summary, "by_content": by}))
