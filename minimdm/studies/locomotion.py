@@ -41,10 +41,11 @@ import torch
 from torch import Tensor
 
 from minimdm.checkpoint import Checkpoint
+from minimdm.diffusion import clip_bounds
 from minimdm.motion import metrics
 from minimdm.motion.corpora import LOCOMOTION, load_motion
 from minimdm.motion.data import Clip, MotionDataset
-from minimdm.motion.features import FeatureLayout, StartPose, encode, start_pose_of
+from minimdm.motion.features import FeatureLayout, Normalizer, StartPose, encode, start_pose_of
 from minimdm.validate import InputError, MismatchError
 
 __all__ = [
@@ -285,9 +286,6 @@ def _on_box(ckpt: Checkpoint, tail: Tensor) -> Tensor | None:
     """Per take (C,), the share of the root's d_x, d_y, d_r in the rollout ``tail`` (C, K, F,
     D), feature units, on the edge of the box the denoiser clamps its frames to (within a
     thousandth of a feature's spread); None for a model without one."""
-    from minimdm.diffusion import clip_bounds
-    from minimdm.motion.features import Normalizer
-
     box = ckpt.diffusion.get("clip_x0")
     if box is None or ckpt.normalizer is None:
         return None
