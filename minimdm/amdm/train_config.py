@@ -134,9 +134,10 @@ class TrainConfig:
     cond_noise_motion: float = 0.0
     """Spread of Gaussian noise added, on top of ``cond_noise``, to the condition's motion
     features only: the root's d_x, d_y, d_r and the joint displacements j_v, in normalized
-    frame units (a feature's spread over the training frames, for every model). The pace then
-    has to be read from the pose as well, so a pace error is not carried on frame after frame
-    (amdm only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
+    frame units (a feature's spread over the training frames, for every model), so that the
+    network cannot copy the previous frame's pace as it is and has to read it from the pose as
+    well (chapter 3's fifth round: it trades a pace that grows for futures that halt; amdm
+    only; :func:`~minimdm.amdm.losses.frame_loss`); 0: none."""
     cond_noise_draw: str = "fixed"
     """How each training condition's noise is sized: 'fixed' (every condition gets the spreads
     ``cond_noise`` and ``cond_noise_motion``), or 'uniform' (each condition's spreads are

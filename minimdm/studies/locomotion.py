@@ -19,8 +19,8 @@ rollout started from, the recording of the same actor and content:
 * **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
   repeats one future scores low);
 * **at the box** after 60 s, for a denoiser that clamps its frames (``clip_x0``): the share of
-  the root's d_x, d_y, d_r over the last tail that sit on the clamp's edge. A future that runs
-  away ends there, pressed against the training frames' range.
+  the root's d_x, d_y, d_r over the last tail that sit on the clamp's edge, where a future
+  that runs away can end up pressed against the training frames' range.
 
 :func:`locomotion_report` returns one record per take, per content and for all takes;
 ``benchmarks/locomotion.py`` prints them as JSON lines. Any motion checkpoint runs: A-MDM, the
