@@ -418,6 +418,7 @@ YARDSTICK_COLUMNS = {
     "speed 10 s": "speed_ratio_10s",
     "worst take": "worst_speed_ratio_10s",
     "moving 60 s": "moving_60s",
+    "speed 60 s": "speed_ratio_60s",
     "FS cm": "FS",
     "FS data": "FS_data",
     "accel": "Jnt.Accel",
