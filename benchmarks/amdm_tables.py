@@ -2,15 +2,15 @@
 
 Prints one JSON line per row (config, hardware, metrics as mean and std over seeds, in cm):
 
-* ``table1``: A-MDM (eps-prediction, ``checkpoints/amdm``), MVAE-style and MSE, all trained on
+* ``table1``: A-MDM (``checkpoints/amdm``), MVAE-style and MSE, all trained on
   the Bandai-Namco training takes, from the same fixed initial states drawn from the held-out
   test takes, plus those takes' own row (``dataset``);
 * ``table2``: motion continuation from the last 30 frames of every held-out take;
 * ``memorisation``: the distance of generated poses to the nearest training pose, next to the
   same distance for the held-out takes' poses (median, 90th percentile, share under 1 cm);
 * ``steps``: one model per T in {1, 2, 5, 10, 20, 40, 100} (``checkpoints/amdm_steps/T*``,
-  smaller models trained on the same takes with the base model's recipe), from the same
-  held-out states: the Table 1 metrics and ms/frame at batch 1, in one run;
+  smaller models trained on the same takes with the recipe of ``configs/amdm_steps.yaml``),
+  from the same held-out states: the Table 1 metrics and ms/frame at batch 1, in one run;
 * ``drift``: bone error and root height over a 1,000-frame rollout of the base model.
 
     python benchmarks/amdm_tables.py                 # the paper's protocol, 3 seeds

@@ -34,7 +34,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 CHECKS = {  # chapter -> how the from-scratch check cell that ends its prefix starts
-    "06_inpainting_inbetweening": "target = eps.normalize(x0)",  # eq. 4 as a hook, one frame
+    "06_inpainting_inbetweening": "cond = eps.normalize(x0)",  # eq. 4 as a hook, one frame
     "07_rl_steering": "def my_residual_hook",  # eq. 7 as a hook against rl.residual_hook
     "09_camdm": "def my_guided_x0",  # CFG with two calls against the library's batch of 2B
 }

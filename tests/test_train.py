@@ -424,8 +424,10 @@ def test_configs_load_and_build(tmp_path):
     for f in files:
         cfg = load_config(f)
         assert cfg.config_file.endswith(f.name)
-        net = build_network(cfg, 183)
+        scale = [0.1] * 183 if cfg.delta else None  # a delta model's spread of change (k)
+        net = build_network(cfg, 183, delta_scale=scale)
         assert isinstance(net, nn.Module)
+        assert getattr(net, "is_delta", False) == cfg.delta, f.name
     paper = load_config(ROOT / "configs" / "amdm_paper.yaml")
     assert (paper.width, paper.depth, paper.T) == (1024, 10, 40)
     bad = tmp_path / "bad.yaml"
