@@ -5,10 +5,10 @@ Prints JSON lines:
 * ``speed``: ms per generated frame (all T denoising steps) for the shipped book model and for
   an untrained paper-size denoiser (10 x 1024, T = 40, 183-dim frames), at several batch sizes,
   eager PyTorch (A-MDM §7.3.2 reports 21 ms/frame at T = 40 on an RTX 4090);
-* ``stability``: a 10,000-frame rollout of the book model: no NaN, the bone-length error and
-  the root height per 1,000-frame window, and the wall time.
+* ``stability``: a 10,000-frame rollout of the book model: no NaN, the bone-length error,
+  the root height and the root's horizontal speed per 1,000-frame window, and the wall time.
 
-    python benchmarks/amdm_sampling.py                  # CPU, ~3 min
+    python benchmarks/amdm_sampling.py --out benchmarks/results/amdm_sampling.jsonl  # CPU, ~6 min
     python benchmarks/amdm_sampling.py --device cuda --batch 1 4096
 """
 
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
 import torch
 from common import emit, hardware, sync
 
@@ -52,6 +53,7 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=10_000, help="length of the stability rollout")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--skip-paper", action="store_true", help="skip the paper-size denoiser")
+    p.add_argument("--out", default=None, help="append the lines to this .jsonl file")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -72,7 +74,7 @@ def main() -> None:
             emit({"bench": "speed", "model": name, "params": n_params, "T": schedule.T,
                   "batch": batch, "ms_per_frame": round(ms, 2),
                   "character_frames_per_s": round(batch / ms * 1e3, 1),
-                  "hardware": hardware(dev)})  # fmt: skip
+                  "hardware": hardware(dev)}, args.out)  # fmt: skip
 
     state = evaluation.initial_state(book, "dataset-1_walk_normal_001", 5)  # a held-out take
     t0 = time.perf_counter()
@@ -80,10 +82,12 @@ def main() -> None:
     seconds = time.perf_counter() - t0
     emit({"bench": "stability", "model": "amdm", "frames": args.frames, "samples": 4,
           "seconds": round(seconds, 1), "ms_per_frame": round(seconds / args.frames * 1e3, 2),
-          "finite": True, "window_end": d["frame"].tolist(),
+          "finite": bool(all(np.isfinite(d[k]).all() for k in d)),
+          "window_end": d["frame"].tolist(),
           "bone_err_cm": [round(float(x), 3) for x in d["bone_err"]],
           "root_height_m": [round(float(x), 3) for x in d["root_height"]],
-          "hardware": hardware(dev)})  # fmt: skip
+          "root_speed_m_s": [round(float(x), 3) for x in d["root_speed"]],
+          "hardware": hardware(dev)}, args.out)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ the autoencoder and its round trip, latent sizes, rollouts, guidance and the pos
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict
 from pathlib import Path
@@ -24,6 +25,7 @@ from minimdm.aamdm.motion import AAMDMMotion, MotionModelConfig, fk_positions, t
 from minimdm.aamdm.motion_train import AAMDMTrainConfig, load_train_config
 from minimdm.amdm.sampling import NonFiniteFrameError
 from minimdm.motion import metrics
+from minimdm.validate import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 BOOK = ROOT / "checkpoints" / "aamdm"
@@ -397,3 +399,36 @@ def test_mirror_doubles_the_motion_data_with_the_reflected_takes():
     assert float(y[:, 1].mean()) > 0.003 > -0.003 > float(m[:, 1].mean())  # left becomes right
     torch.testing.assert_close(two["y"][0], y)
     assert not torch.allclose(two["x"][1], one["x"][0], atol=1e-3)  # the futures are reflected
+
+
+def test_locomotion_share_weights_the_pairs_and_windows_by_content():
+    """locomotion_share: 0.8 gives the locomotion takes (and their mirror images) 80% of the
+    draws, whatever their length; the draws follow the weights, and bad weights are refused."""
+    from minimdm.aamdm.motion_train import _weights, load_motion_data
+    from minimdm.aamdm.train import _check_weights, _draw
+
+    clips = ["dataset-1_walk-left_active_001", "dataset-1_bow_active_001"]
+    cfg = AAMDMTrainConfig(corpus="bandai-namco-1", split="train", loop_frames=None, clips=clips,
+                           mirror=True, locomotion_share=0.8)  # fmt: skip
+    d = load_motion_data(cfg)
+    assert sorted(d["contents"]) == ["bow", "bow", "walk-left", "walk-left"]
+    for n in (1, 4):
+        w = _weights(cfg, d, d["y"], n)
+        counts = [len(y) - n for y in d["y"]]
+        assert w.shape == (sum(counts),)
+        per_clip = [float(part.sum()) for part in w.split(counts)]
+        loco = sum(p for p, c in zip(per_clip, d["contents"], strict=True) if c == "walk-left")
+        assert sum(per_clip) == pytest.approx(1.0) and loco == pytest.approx(0.8)
+    assert _weights(dataclasses.replace(cfg, locomotion_share=None), d, d["y"], 1) is None
+    windows = torch.arange(10.0)[:, None, None].expand(10, 2, 3)
+    one_hot = torch.zeros(10).index_fill(0, torch.tensor([3]), 1.0)
+    drawn = _draw(50, windows, _check_weights(one_hot, windows), torch.Generator().manual_seed(0))
+    assert (drawn == 3).all()
+    uniform = _draw(50, windows, None, torch.Generator().manual_seed(0))
+    assert len(set(uniform[:, 0, 0].tolist())) > 5
+    with pytest.raises(ValueError, match=r"shape \(10,\)"):
+        _check_weights(torch.ones(9), windows)
+    with pytest.raises(ValueError, match="not all zero"):
+        _check_weights(torch.zeros(10), windows)
+    with pytest.raises(InputError, match="locomotion_share"):
+        AAMDMTrainConfig(locomotion_share=1.5)

@@ -142,6 +142,7 @@ def test_dataset_row_has_rigid_bones_and_drift_is_measured(trained):
     d = evaluation.drift(ck, state, n_frames=40, n_samples=2, window=10)
     assert d["frame"].tolist() == [10, 20, 30, 40]
     assert np.isfinite(d["bone_err"]).all() and (d["root_height"] > 0).all()
+    assert (d["root_speed"] >= 0).all() and d["root_speed"].shape == (4,)
 
 
 def test_format_table_and_pretrained_errors(tmp_path, monkeypatch):

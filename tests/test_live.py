@@ -6,8 +6,10 @@ A page made of the vendored files only (ONNX Runtime Web's WebAssembly build fro
 offline). The test presses the arrow keys and checks that the root moves in the commanded
 direction, reads the page's own frame counter, and that a model file of another kind shows a
 readable error instead of a frozen canvas. ``MINIMDM_SCREENSHOTS=folder`` keeps a screenshot of
-the page after the key presses. The frame-rate goal is a timing, so it is measured by
-``benchmarks/live_page.py``, not asserted here: a busy machine would fail it.
+the page after the key presses. The model runs on its own 30 Hz clock (one frame every 1/30 s of
+wall time, drawn at the display's rate); the test checks that pacing, 150 +- 15 frames in 5 s,
+which holds wherever one frame of the model takes well under 33 ms (about 7 ms on the 2-core
+build machine, busy with two trainings). ``benchmarks/live_page.py`` measures how fast the page could run.
 """
 
 from __future__ import annotations
@@ -99,10 +101,8 @@ def _steered_run(browser, site) -> dict:
     goal = float(_state(page)["goal"])
     _wait_frames(page, f0 + 300)  # let the policy turn (10 s of motion)
     s1 = _state(page)
-    t1 = time.monotonic()
     _wait_frames(page, int(s1["frames"]) + 150)
     s2 = _state(page)
-    t2 = time.monotonic()
     if os.environ.get("MINIMDM_SCREENSHOTS"):  # the page after the key presses
         folder = Path(os.environ["MINIMDM_SCREENSHOTS"])
         folder.mkdir(parents=True, exist_ok=True)
@@ -113,13 +113,29 @@ def _steered_run(browser, site) -> dict:
         "goal": goal,
         "metres": math.hypot(dx, dy),
         "off": math.degrees(abs(math.remainder(math.atan2(dy, dx) - math.pi / 2, 2 * math.pi))),
-        "fps": float(s2["fps"]),  # the page's own counter: frames since its start / seconds
-        "counted_fps": (int(s2["frames"]) - int(s1["frames"])) / (t2 - t1),  # here, 150 frames
         "errors": errors + outside,
     }
 
 
-def test_keys_steer_the_character_and_the_page_keeps_time(browser, site):
+def test_the_model_steps_on_its_own_30_hz_clock(browser, site):
+    """Frame pacing: the model advances 30 frames per second of wall time, whatever the display's
+    rate (150 +- 15 frames in 5 s), and the page's counters say so: its model frames per second
+    over the last second, and the speed in the model's own m/s."""
+    page, errors, outside = _open(browser, f"{site}/index.html")
+    _wait_frames(page, 30)
+    f0, t0 = int(_state(page)["frames"]), time.monotonic()
+    page.wait_for_timeout(5000)
+    s, t1 = _state(page), time.monotonic()
+    page.close()
+    advanced = (int(s["frames"]) - f0) * 5.0 / (t1 - t0)  # per 5 s of wall time
+    print(f"live page: {advanced:.0f} frames in 5 s, counter {s['fps']}/s, {s['speed']} m/s")
+    assert 135 <= advanced <= 165, s
+    assert 27 <= float(s["fps"]) <= 33, s  # the page's own counter, over its last second
+    assert 0.05 < float(s["speed"]) < 4.5, s  # m/s in model time: walking, not a blur
+    assert not errors and not outside
+
+
+def test_keys_steer_the_character(browser, site):
     """The root walks towards the command: within 60 degrees of it over 150 frames.
 
     The policy itself under-turns by about 45 degrees and, from this start frame, walks away in
@@ -133,14 +149,7 @@ def test_keys_steer_the_character_and_the_page_keeps_time(browser, site):
         assert run["goal"] == pytest.approx(math.pi / 2, abs=1e-3)  # the keys set the command
         assert run["metres"] > 1.0  # it walks (150 frames at the commanded 1.6 m/s: ~8 m)
         assert not run["errors"]
-        print(
-            f"live page: {run['fps']} frames/s ({run['counted_fps']:.1f} counted here), "
-            f"{run['off']:.0f} degrees off the command"
-        )
-        # The page's counter is a frame rate: it agrees with the frames counted here over
-        # wall-clock time, in the same run (within a factor of 3: the page averages over its
-        # whole run, this count over its last 150 frames, and a busy machine varies).
-        assert 1 / 3 < run["fps"] / run["counted_fps"] < 3, run
+        print(f"live page: {run['off']:.0f} degrees off the command")
         if run["off"] < 60:
             break
     assert runs[-1]["off"] < 60, f"the root went astray in every run: {runs}"

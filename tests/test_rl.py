@@ -476,3 +476,23 @@ def test_shipped_policies_load_with_their_base_model_and_record_their_command(na
     assert s.checkpoint.paths.weights.stat().st_size < 5 * 2**20
     obs = torch.zeros(3, s.policy.obs_dim)
     assert s.policy.act(obs).shape == (3, s.steerer.action_dim)
+
+
+def test_residuals_on_a_delta_model_are_in_the_frames_units():
+    """A delta model's chain denoises the change z = (x - x_prev) / k; the steerer divides the
+    residuals by k, so that a residual at the last step moves the next frame by w * a standard
+    deviations of the normalized feature, as it does for a model of the frame."""
+    cm = Sampler.load(minimdm.pretrained("amdm"))
+    assert cm.net.is_delta
+    steer = ResidualSteerer(cm, ResidualSchedule(cm.schedule.T, (0,), "none", 0.5), "root")
+    cond = cm.normalize(corpus_starts(minimdm.pretrained("amdm"))[::2000][:4])
+    a = torch.tensor([[1.0, -0.5, 0.25]]).expand(len(cond), 3)
+    free = steer(cond, torch.zeros_like(a), torch.Generator().manual_seed(0))
+    pushed = steer(cond, a, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(
+        pushed[:, steer.idx] - free[:, steer.idx], 0.5 * a, atol=1e-4, rtol=0
+    )
+    others = [i for i in range(cm.dim) if i not in steer.idx]
+    torch.testing.assert_close(pushed[:, others], free[:, others])
+    with pytest.raises(ValueError, match="units must hold 3 positive"):
+        residual_hook(steer.schedule, a, steer.chain, steer.idx, torch.ones(2))

@@ -66,6 +66,10 @@ class AAMDMTrainConfig:
     mirror: bool = False
     """Also train on every clip reflected left/right (:mod:`minimdm.motion.mirror`), as the base
     A-MDM does: twice the frames, as many right turns as left ones."""
+    locomotion_share: float | None = None
+    """The share of training draws (frame pairs and windows) from the locomotion takes, split
+    equally among their contents, as the base A-MDM's ``locomotion_share``
+    (:func:`minimdm.amdm.train.window_weights`); None: every frame equally often."""
     horizons: list[int] = field(default_factory=lambda: [10, 20, 30])
     """Frames ahead of the future-trajectory features x."""
     z_dim: int = 24
@@ -145,6 +149,8 @@ class AAMDMTrainConfig:
             check_number(name, getattr(self, name), low=0.0, low_open=True)
         for name in ("w_val", "w_vel", "w_reg", "polish_w_vel", "r1_gamma"):
             check_number(name, getattr(self, name), low=0.0)
+        if self.locomotion_share is not None:
+            check_number("locomotion_share", self.locomotion_share, low=0.0, high=1.0)
 
 
 def load_train_config(path: str | Path) -> AAMDMTrainConfig:
@@ -170,12 +176,22 @@ def load_motion_data(config: AAMDMTrainConfig) -> dict[str, Any]:
     skeleton = clips[0].skeleton  # actors' bone lengths may differ; the topology may not
     return {
         "clips": clips,
+        "contents": [c.labels.get("content") for c in frames_of],
         "y": ys,
         "x": xs,
         "normalizer": features.Normalizer.fit(ys),
         "skeleton": skeleton,
         "layout": features.FeatureLayout.for_skeleton(skeleton, config.fps),
     }
+
+
+def _weights(c: AAMDMTrainConfig, d: dict[str, Any], arrays: list[Tensor], n: int) -> Tensor | None:
+    """Draw weights of the (n + 1)-frame windows of ``arrays`` for ``c.locomotion_share``."""
+    if c.locomotion_share is None:
+        return None
+    from minimdm.amdm.train import window_weights
+
+    return window_weights([len(a) for a in arrays], n, d["contents"], c.locomotion_share)
 
 
 def _pairs(arrays: list[Tensor]) -> Tensor:
@@ -219,13 +235,14 @@ def _train(
 
     # 1. the autoencoder, on pairs of consecutive frames (eqs. 1-4)
     t0 = time.perf_counter()
-    info = _train_autoencoder(model, ys, xs, d, c, log)
+    info = _train_autoencoder(model, ys, xs, d, c, log, _weights(c, d, ys, 1))
     report["autoencoder_s"] = time.perf_counter() - t0
     report["autoencoder"] = _round(info)
 
     # 2. the embedded vectors xz of every frame, standardised
     xz = _embed(model, ys, xs, c)
     windows = make_windows(xz, c.window)  # (W, h + 1, X + Z)
+    weights = _weights(c, d, xz, c.window)
     report["windows"] = int(windows.shape[0])
 
     # 3. the polisher (Algorithm 1 lines 7-18), velocities on x (eq. 8)
@@ -233,7 +250,9 @@ def _train(
     sch = tr.schedule("cpu")
     pcfg = PolishConfig(c.polish_steps, c.polish_batch, c.polish_lr, c.polish_w_vel, seed=c.seed)
     t0 = time.perf_counter()
-    hist = train_polisher(tr.polisher, sch, windows, c.T_adm, pcfg, vel_dims=slice(0, X_DIM))
+    hist = train_polisher(
+        tr.polisher, sch, windows, c.T_adm, pcfg, vel_dims=slice(0, X_DIM), weights=weights
+    )
     report["polisher_s"] = time.perf_counter() - t0
     report["polisher"] = _round(hist[-1])
     log(f"polisher: {json.dumps(report['polisher'])} in {report['polisher_s']:.0f} s", flush=True)
@@ -241,7 +260,7 @@ def _train(
     # 4. the DD-GAN, conditioned on the polisher's rollouts (lines 19-25)
     meta = _metadata(c, d, command, windows)
     t0 = time.perf_counter()
-    gan_hist = _train_gan(model, sch, windows, c, out_dir, meta, log)
+    gan_hist = _train_gan(model, sch, windows, c, out_dir, meta, log, weights)
     report["gan_s"] = time.perf_counter() - t0
     report["gan"] = _round(gan_hist[-1], _GAN_KEYS)
     report["total_s"] = time.perf_counter() - t_all
@@ -298,8 +317,10 @@ def _train_autoencoder(
     d: dict[str, Any],
     c: AAMDMTrainConfig,
     log: Callable[..., None],
+    weights: Tensor | None = None,
 ) -> dict[str, float]:
-    """Fit the autoencoder on pairs of consecutive frames (eqs. 1-4); its last step's losses."""
+    """Fit the autoencoder on pairs of consecutive frames (eqs. 1-4), drawn by ``weights`` when
+    given; its last step's losses."""
     y_pairs, x_pairs = _pairs(ys), _pairs(xs)
     ae = model.autoencoder
     opt = torch.optim.Adam(ae.parameters(), lr=c.ae_lr)
@@ -307,7 +328,10 @@ def _train_autoencoder(
     denormalize, skeleton = d["normalizer"].denormalize, d["skeleton"]
     for step in range(c.ae_steps):
         set_lr(opt, cosine_lr(step, c.ae_steps, c.ae_lr, c.ae_lr / 20))
-        idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
+        if weights is None:
+            idx = torch.randint(0, len(y_pairs), (c.ae_batch,), generator=g)
+        else:
+            idx = torch.multinomial(weights, c.ae_batch, replacement=True, generator=g)
         loss, info = autoencoder_loss(
             ae, y_pairs[idx], x_pairs[idx], denormalize, skeleton, c.w_val, c.w_vel, c.w_reg
         )
@@ -367,9 +391,11 @@ def _train_gan(
     out_dir: Path | None,
     meta: dict[str, Any],
     log: Callable[..., None],
+    weights: Tensor | None = None,
 ) -> list[dict]:
-    """The DD-GAN on the windows, conditioned on the polisher's rollouts (lines 19-25),
-    checkpointed into ``out_dir`` every 1000 steps; its history."""
+    """The DD-GAN on the windows (drawn by ``weights`` when given), conditioned on the
+    polisher's rollouts (lines 19-25), checkpointed into ``out_dir`` every 1000 steps; its
+    history."""
     xz_dim = X_DIM + c.z_dim
     disc = DDGANDiscriminator(
         DiscriminatorConfig(xz_dim, xz_dim, c.disc_width, 3, 64, fourier=c.fourier)
@@ -402,6 +428,7 @@ def _train_gan(
         metadata=meta,
         resume=False,
         callback=tick,
+        weights=weights,
     )
 
 

@@ -194,6 +194,25 @@ def _levels(n: int, lo: int, hi: int, gen: torch.Generator, device) -> Tensor:
     return torch.randint(lo, hi, (n,), generator=gen, device=device)
 
 
+def _draw(n: int, windows: Tensor, weights: Tensor | None, gen: torch.Generator) -> Tensor:
+    """``n`` windows drawn with replacement: uniformly, or by ``weights`` (W,) when given."""
+    if weights is None:
+        return windows[_levels(n, 0, windows.shape[0], gen, windows.device)]
+    return windows[torch.multinomial(weights, n, replacement=True, generator=gen)]
+
+
+def _check_weights(weights: Tensor | None, windows: Tensor) -> Tensor | None:
+    if weights is None:
+        return None
+    weights = torch.as_tensor(weights, dtype=torch.float64, device=windows.device)
+    if weights.shape != (windows.shape[0],):
+        want, got = windows.shape[0], tuple(weights.shape)
+        raise ValueError(f"weights must have shape ({want},), one per window, got {got}")
+    if not (torch.isfinite(weights).all() and (weights >= 0).all() and weights.sum() > 0):
+        raise ValueError("weights must be finite, non-negative and not all zero")
+    return weights
+
+
 def polisher_rollout(
     polisher: nn.Module,
     schedule: NoiseSchedule,
@@ -245,9 +264,11 @@ def train_polisher(
     T_adm: int,
     config: PolishConfig | None = None,
     vel_dims: slice | None = None,
+    weights: Tensor | None = None,
 ) -> list[dict]:
     """Fit :math:`G^{ADM}` on the polishing levels ``0 .. T_adm - 1`` (Algorithm 1).
 
+    ``weights`` (W,): how often each window is drawn (None: uniformly).
     Returns one record per step (``loss``, ``l_val``, ``l_vel``).
     """
     config = config or PolishConfig()
@@ -256,13 +277,14 @@ def train_polisher(
         raise ValueError(f"T_adm must lie in [1, T={schedule.T}] to train a polisher, got {T_adm}")
     device = next(polisher.parameters()).device
     windows, schedule = windows.to(device), schedule.to(device)
+    weights = _check_weights(weights, windows)
     gen = torch.Generator(device).manual_seed(config.seed)
     opt = _optimizer(config.optimizer, polisher.parameters(), config.lr)
     history = []
     polisher.train()
     for step in range(config.steps):
         set_lr(opt, cosine_lr(step, config.steps, config.lr, config.lr / 20))
-        w = windows[_levels(config.batch_size, 0, windows.shape[0], gen, device)]
+        w = _draw(config.batch_size, windows, weights, gen)
         x0_hat = polisher_rollout(
             polisher, schedule, w, T_adm, gen, detach=not config.backprop_rollout
         )
@@ -554,6 +576,7 @@ def train_ddgan(
     metadata: dict | None = None,
     resume: bool = True,
     callback=None,
+    weights: Tensor | None = None,
 ) -> list[dict]:
     """Train the DD-GAN generation module on ``windows`` (N, h + 1, D).
 
@@ -570,6 +593,7 @@ def train_ddgan(
             from that state.
         callback: ``callback(step, record)`` after every step (``record["ema"]`` holds the
             averaged generator weights); raising stops the run.
+        weights: (N,) how often each window is drawn (None: uniformly).
 
     At the end ``gan`` holds the averaged weights (``config.ema_decay``), as do checkpoints.
 
@@ -584,6 +608,7 @@ def train_ddgan(
     with _run_lock(checkpoint):  # one run per checkpoint folder
         device = next(gan.parameters()).device
         windows, schedule = windows.to(device), schedule.to(device)
+        weights = _check_weights(weights, windows)
         bundle = bundle if bundle is not None else gan
         run = _start_ddgan(gan, disc, config, device, bundle, checkpoint if resume else None)
         history: list[dict] = []
@@ -591,7 +616,7 @@ def train_ddgan(
         while run.step < config.steps:
             for opt, lr in ((run.opt_g, config.lr_g), (run.opt_d, config.lr_d)):
                 set_lr(opt, cosine_lr(run.step, config.steps, lr, lr * config.lr_end))
-            w = windows[_levels(config.batch_size, 0, windows.shape[0], run.gen, device)]
+            w = _draw(config.batch_size, windows, weights, run.gen)
             p = draw_gan_pairs(gan, schedule, w, T_gan, run.gen, config.pairs, polisher, T_adm)
             loss_d, info = discriminator_loss(  # eq. 12
                 disc, p.x_prev_real, p.x_prev_fake, p.x_t, p.cond, p.k, config.r1_gamma

@@ -428,11 +428,13 @@ def drift(
     steps: int | None = None,
     device: torch.device | str = "cpu",
 ) -> dict[str, np.ndarray]:
-    """Bone error (cm) and root height (m) per window of a long rollout, averaged over samples.
+    """Bone error (cm), root height (m) and root speed (m/s) per window of a long rollout,
+    averaged over samples.
 
     Returns ``{"frame": (W,) window ends, "bone_err": (W,), "root_height": (W,),
-    "root_height_std": (W,)}``: a model without scheduled sampling drifts, its bones stretch and
-    its root sinks or floats.
+    "root_height_std": (W,), "root_speed": (W,)}``: a model without scheduled sampling drifts, its
+    bones stretch and its root sinks or floats; a model that converges to standing still shows it
+    in the root's horizontal speed.
     """
     sk = checkpoint_skeleton(ckpt)
     ref_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
@@ -448,7 +450,7 @@ def drift(
         device=device,
     )
     pos = r.positions[0]  # (K, F, J, 3)
-    ends, bone, height, height_std = [], [], [], []
+    ends, bone, height, height_std, speed = [], [], [], [], []
     for a in range(0, n_frames, window):
         x = pos[:, a : a + window]
         ends.append(min(a + window, n_frames))
@@ -456,11 +458,14 @@ def drift(
         z = x[..., 0, 2]  # (K, w) root height
         height.append(float(z.mean()))
         height_std.append(float(z.std()))
+        step = x[:, 1:, 0, :2] - x[:, :-1, 0, :2]  # (K, w - 1, 2) horizontal root steps
+        speed.append(float(step.norm(dim=-1).mean()) * ckpt.fps if x.shape[1] > 1 else 0.0)
     return {
         "frame": np.array(ends),
         "bone_err": np.array(bone),
         "root_height": np.array(height),
         "root_height_std": np.array(height_std),
+        "root_speed": np.array(speed),
     }
 
 

@@ -86,7 +86,10 @@ class Steerer:
 
 class ResidualSteerer(Steerer):
     """A-MDM residual steering (eq. 7): actions (N, K * F) in [-1, 1] are residuals on the
-    ``features`` of the K steps of ``schedule``, weighted by :math:`w^t` (times its scale)."""
+    ``features`` of the K steps of ``schedule``, weighted by :math:`w^t` (times its scale), in
+    standard deviations of the normalized frame's features, whether the base model denoises
+    the frame or its change from the previous one (then they are divided by the change's scale
+    k on their way into the chain, :func:`~minimdm.rl.residual.residual_hook`'s ``units``)."""
 
     kind = "residual"
 
@@ -104,9 +107,11 @@ class ResidualSteerer(Steerer):
         self.per_step = len(self.idx) if self.idx is not None else cm.dim
         self.action_dim = schedule.n_residuals * self.per_step
         self.chain = cm.settings.levels(cm.schedule.T)  # the levels of a frame's chain
+        k = cm.net.delta_k if cm.net.is_delta else None  # a delta model's scale of the change
+        self.units = None if k is None else 1 / (k if self.idx is None else k[self.idx])
 
     def __call__(self, cond, actions, generator):
-        hook = residual_hook(self.schedule, actions, self.chain, self.idx)
+        hook = residual_hook(self.schedule, actions, self.chain, self.idx, self.units)
         return self.cm.frame(cond, generator, hook=hook)
 
     def to_dict(self):

@@ -145,6 +145,7 @@ def residual_hook(
     actions: Tensor,
     chain_levels: Sequence[int],
     features: Sequence[int] | None = None,
+    units: Tensor | None = None,
 ) -> Hook:
     """The hook that adds one frame's residuals to the chain (eq. 7).
 
@@ -157,6 +158,11 @@ def residual_hook(
             for DDPM, the DDIM grid otherwise). The hook is told the level the chain moves to;
             this list says which step got it there. A perturbed level the chain skips raises.
         features: the frame dimensions the residuals act on (default: all D).
+        units: (F,) the chain's units per unit of the normalized frame, one per feature, a
+            factor on every residual (default 1). A delta model's chain denoises the change
+            ``z = (x - x_{f-1}) / k`` (:meth:`~minimdm.amdm.models.MLPDenoiser.to_delta`): with
+            ``units = 1 / k`` a residual keeps the meaning it has for a model of the frame, a
+            push of so many standard deviations of the feature.
 
     Returns:
         ``hook(t_next, x, x0_hat) -> x``: after the step from a perturbed level ``t`` it returns
@@ -188,6 +194,16 @@ def residual_hook(
     }
     w = schedule.weights().to(actions.device, actions.dtype)  # (K,)
     idx = None if features is None else torch.as_tensor(list(features), device=actions.device)
+    if units is not None:
+        units = torch.as_tensor(units, device=actions.device, dtype=actions.dtype)
+        if units.shape != (actions.shape[2],) or not (
+            torch.isfinite(units).all() and (units > 0).all()
+        ):
+            raise ValueError(
+                f"units must hold {actions.shape[2]} positive finite factors, one per feature, "
+                f"got shape {tuple(units.shape)}"
+            )
+        actions = actions * units
 
     def hook(t_next: int, x: Tensor, x0_hat: Tensor) -> Tensor:
         k = after.get(t_next)

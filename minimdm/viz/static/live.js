@@ -8,8 +8,18 @@
 // observes them), fresh Gaussian noise, one graph call, then the root integrated and the joints
 // placed as the metadata's decode recipe says. Arrow keys or the buttons steer: left/right turn
 // the command by 45 degrees, up/down change the speed. A mismatch shows a message, never a
-// frozen canvas. The container's data-frames, data-fps, data-x, data-y, data-heading and
-// data-goal attributes report the state (the browser test reads them).
+// frozen canvas.
+//
+// Two clocks. The model steps on its own: frame n is due n / fps seconds after the start
+// (30 Hz for the book's model), whatever the display does, so the character moves at the speed
+// it has in model time on every machine. The display draws the newest frame whenever the
+// browser repaints (requestAnimationFrame). A machine too slow for the model's rate runs it
+// slower, and the counter says so: the clock is not allowed to run ahead and burst.
+// The container's data-frames, data-fps (model frames per second over the last second),
+// data-draws (new frames drawn per second), data-ms (milliseconds one model frame takes, the
+// mean over the last second: how fast the page could run), data-speed (m/s in model time over
+// the last second),
+// data-x, data-y, data-heading and data-goal report the state (the browser test reads them).
 import * as THREE from "three";
 
 // The player's figure, shared rather than copied, and player.js left byte for byte as it is (the
@@ -110,11 +120,14 @@ export async function live(container, { ort, data: dataUrl }) {
   grid.rotation.x = -Math.PI / 2;
   scene.add(grid);
   const camera = new THREE.PerspectiveCamera(40, width / height, 0.05, 500);
-  const mat = new THREE.MeshStandardMaterial({ color: 0x2f6db5, roughness: 0.5 });
-  const jmat = new THREE.MeshStandardMaterial({ color: 0x234f85, roughness: 0.5 });
+  // the book's colours (minimdm.viz.scene): orange for generated motion, red for goals
+  const GENERATED = 0xf28e2b, TARGET = 0xd62728;
+  const mat = new THREE.MeshStandardMaterial({ color: GENERATED, roughness: 0.5 });
+  const jmat = new THREE.MeshStandardMaterial({
+    color: new THREE.Color(GENERATED).multiplyScalar(0.75), roughness: 0.5 });
   const fig = new Figure(parents, headJoint(meta.skeleton.names, parents), 0.03, mat, jmat, false);
   scene.add(fig.group);
-  const arrow = new THREE.ArrowHelper(new THREE.Vector3(1, 0, 0), new THREE.Vector3(), 0.8, 0xd9534f);
+  const arrow = new THREE.ArrowHelper(new THREE.Vector3(1, 0, 0), new THREE.Vector3(), 0.8, TARGET);
   scene.add(arrow);
 
   // controls: arrow keys on the canvas (or anywhere on the page) and buttons
@@ -147,7 +160,7 @@ export async function live(container, { ort, data: dataUrl }) {
   let x = Float32Array.from(data.starts[0]);
   let xy = [0, 0], heading = 0, velocity = [0, 0];
   const world = new Float32Array(3 * J);
-  let frames = 0, t0 = performance.now();
+  let frames = 0;
 
   function place() { // features -> three.js joint positions (x, z, -y), root integration done
     const c = Math.cos(heading), s = Math.sin(heading);
@@ -189,19 +202,56 @@ export async function live(container, { ort, data: dataUrl }) {
     frames += 1;
   }
 
-  place();
-  container.dataset.frames = "0";
-  async function loop() {
-    try { await step(); } catch (e) { if (!container.dataset.error) fail(container, e.message); return; }
-    place();
-    const now = performance.now();
-    const rate = (1000 * frames) / (now - t0);
+  // rates over the last second, from the times of the events in it
+  function rate(times, now) {
+    while (times.length && times[0] < now - 1000) times.shift();
+    return times.length > 1 ? (1000 * (times.length - 1)) / (times[times.length - 1] - times[0]) : 0;
+  }
+  const stepTimes = [], drawTimes = [], speeds = [], costs = [];
+  const period = 1000 / fps;
+  let due = performance.now(), drawn = -1;
+
+  function report(now) {
+    const modelRate = rate(stepTimes, now), drawRate = rate(drawTimes, now);
+    const mean = (a) => (a.length ? a.reduce((u, v) => u + v, 0) / a.length : 0);
+    const speed = mean(speeds);
     Object.assign(container.dataset, {
-      frames: String(frames), fps: rate.toFixed(1), x: xy[0].toFixed(3), y: xy[1].toFixed(3),
+      frames: String(frames), fps: modelRate.toFixed(1), draws: drawRate.toFixed(1),
+      ms: mean(costs).toFixed(2), speed: speed.toFixed(2), x: xy[0].toFixed(3), y: xy[1].toFixed(3),
       heading: heading.toFixed(3), goal: goal.heading.toFixed(3),
     });
-    info.textContent = `${rate.toFixed(0)} frames/s · command ${Math.round((goal.heading * 180) / Math.PI)}°, ${goal.speed.toFixed(1)} m/s`;
-    setTimeout(loop, 0); // the next frame at once: waiting for the display would cost up to 16 ms
+    info.textContent = `${speed.toFixed(2)} m/s (command ${goal.speed.toFixed(1)} m/s, ` +
+      `${Math.round((goal.heading * 180) / Math.PI)}°) · model ${modelRate.toFixed(0)} frames/s ` +
+      `of ${fps} · drawn ${drawRate.toFixed(0)}/s`;
   }
-  setTimeout(loop, 0);
+
+  async function tick() { // the model's clock
+    const start = performance.now();
+    try { await step(); } catch (e) { if (!container.dataset.error) fail(container, e.message); return; }
+    const now = performance.now();
+    stepTimes.push(now);
+    speeds.push(Math.hypot(velocity[0], velocity[1]));
+    costs.push(now - start);
+    if (speeds.length > fps) { speeds.shift(); costs.shift(); }
+    due += period;
+    if (now - due > 5 * period) due = now; // fell behind (a slow machine, a hidden tab): no burst
+    report(now);
+    setTimeout(tick, Math.max(0, due - now));
+  }
+
+  function draw(now) { // the display's clock: the newest frame, once
+    if (container.dataset.error) return;
+    if (drawn !== frames) {
+      place();
+      drawn = frames;
+      drawTimes.push(now);
+    }
+    requestAnimationFrame(draw);
+  }
+
+  place();
+  container.dataset.frames = "0";
+  due = performance.now();
+  setTimeout(tick, 0);
+  requestAnimationFrame(draw);
 }
