@@ -20,9 +20,12 @@ Prints one JSON line per measurement (and appends it to ``--out``). Not a test.
   apart their root paths are.
 * ``speed``: policy + A-MDM in ms/frame at batch 1 on one thread, with the base model alone.
 
-Every method starts from the same state: frame 20 of the held-out take
-``dataset-1_walk_normal_001``, at the origin facing +x. Seeds change the models' noise (and the
-beam's candidates); targets, commands and paths are fixed.
+Everything is held out from the policies' training. The characters start from frame 20 of the
+corpus's held-out walk and run takes (character i from take i mod 6), at the origin facing +x,
+every method from the same starts; the targets, commands and paths are drawn with
+``HELD_OUT_SEED``, which no training run uses (training draws its goals from torch generators
+seeded 0-2). Seeds change the models' noise (and the beam's candidates). The diversity and speed
+runs start from one take, ``dataset-1_walk_normal_001``.
 
     python benchmarks/rl_steering.py                        # everything but the curves
     python benchmarks/rl_steering.py --only curves          # about 70 min on 2 cores
@@ -55,6 +58,10 @@ from minimdm.rl.rollout import steer
 from minimdm.rl.train import load_config, train_policy
 
 START = ("dataset-1_walk_normal_001", 20)
+START_CONTENTS = ("walk", "run")
+"""The held-out takes the task runs start from (frame 20 of each)."""
+HELD_OUT_SEED = 7919
+"""Seeds the benchmark's targets, commands and paths."""
 RESULTS = ROOT / "benchmarks" / "results"
 
 
@@ -104,7 +111,7 @@ def quality(pos: torch.Tensor, feats: torch.Tensor, lengths, skeleton, offsets, 
 
 def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None = None) -> None:
     keys = per_seed[0].keys()
-    row = {"bench": bench, "method": method, "seeds": len(per_seed), **(extra or {})}
+    row = {"bench": bench, "method": method, "seeds": len(per_seed), "tag": TAG, **(extra or {})}
     row.update({k: mean_ci([s[k] for s in per_seed]) for k in keys})
     emit(row, OUT)
 
@@ -196,8 +203,8 @@ def first_hit(hit: torch.Tensor) -> torch.Tensor:
     return torch.where(any_, idx, torch.full_like(idx, -1))
 
 
-def target(amdm, start, ctx, args) -> None:
-    goals = fixed_goals(args.targets)
+def target(amdm, starts, ctx, args) -> None:
+    goals = fixed_goals(args.targets, HELD_OUT_SEED)
     N, F = len(goals), args.max_frames
     pol = load_steering(args.rl_target)
     fps = pol.cm.fps
@@ -206,7 +213,7 @@ def target(amdm, start, ctx, args) -> None:
     for seed in range(args.seeds):
         t0 = time.perf_counter()
         m = steer(
-            pol, F, N, starts=start[None], setup=lambda env: env.task.set_targets(goals), seed=seed
+            pol, F, N, starts=starts, setup=lambda env: env.task.set_targets(goals), seed=seed
         )
         sec = time.perf_counter() - t0
         done = first_hit(m.info["hit"])
@@ -216,7 +223,7 @@ def target(amdm, start, ctx, args) -> None:
         t0 = time.perf_counter()
         b = C.beam_search(
             amdm,
-            start.expand(N, -1),
+            starts[torch.arange(N) % len(starts)],
             C.target_score(goals.double()),
             F,
             pool=args.pool,
@@ -235,7 +242,8 @@ def target(amdm, start, ctx, args) -> None:
             )
             con = C.root_path_targets(amdm.layout, path)
             g = torch.Generator().manual_seed(seed * 1000 + i)
-            mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
+            s0 = starts[i % len(starts)]
+            mi = C.inpaint(amdm, s0, con.targets, con.mask, g, start_pose=con.start_pose)
             d = (mi.root_xy[-1] - goals[i]).norm()
             n = mi.n_frames if d < 0.15 else -1
             rows.append(
@@ -319,10 +327,10 @@ def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0
     return act
 
 
-def joystick(start, ctx, args) -> None:
+def joystick(starts, ctx, args) -> None:
     pol = load_steering(args.rl_joystick)
     N, F = args.commands, 480
-    heading, speed = commands(N, F + 1)
+    heading, speed = commands(N, F + 1, HELD_OUT_SEED)
     fps = pol.cm.fps
     runs = {
         "rl_policy": {},
@@ -336,12 +344,13 @@ def joystick(start, ctx, args) -> None:
                 pol,
                 F,
                 N,
-                starts=start[None],
+                starts=starts,
                 setup=lambda env: env.task.preset(heading, speed),
                 seed=seed,
                 **how,
             )
-            he = m.info["heading_error"].abs() * 180 / math.pi
+            signed = m.info["heading_error"] * 180 / math.pi  # heading - command, + = left
+            he = signed.abs()
             se = m.info["speed_error"].abs()
             since = torch.arange(F) % 120  # frames since the last command change
             settled = since >= 60
@@ -349,6 +358,10 @@ def joystick(start, ctx, args) -> None:
                 {
                     "heading_error_deg": float(he.mean()),
                     "heading_error_settled_deg": float(he[:, settled].mean()),
+                    "heading_error_settled_signed_deg": float(signed[:, settled].mean()),
+                    "speed_error_settled_signed_mps": float(
+                        m.info["speed_error"][:, settled].mean()
+                    ),
                     "speed_error_mps": float(se.mean()),
                     "speed_error_settled_mps": float(se[:, settled].mean()),
                     "reward_eq8": float(m.reward.mean()),
@@ -366,18 +379,16 @@ def joystick(start, ctx, args) -> None:
 # --------------------------------------------------------------------------- path following
 
 
-def path(amdm, start, ctx, args) -> None:
+def path(amdm, starts, ctx, args) -> None:
     pol = load_steering(args.rl_path)
     N, F = args.paths, 450
     paths = procedural_paths(
-        N, F, torch.Generator().manual_seed(0), pol.task.speed_range, pol.task.turn_max
+        N, F, torch.Generator().manual_seed(HELD_OUT_SEED), pol.task.speed_range, pol.task.turn_max
     )  # (N, F + 1, 2) from the origin facing +x
     fps = pol.cm.fps
     res = {"rl_policy": [], "inpaint_path": []}
     for seed in range(args.seeds):
-        m = steer(
-            pol, F, N, starts=start[None], setup=lambda env: env.task.set_paths(paths), seed=seed
-        )
+        m = steer(pol, F, N, starts=starts, setup=lambda env: env.task.set_paths(paths), seed=seed)
         dev = m.info["deviation"]
         res["rl_policy"].append(
             {
@@ -390,7 +401,8 @@ def path(amdm, start, ctx, args) -> None:
         for i in range(N):
             con = C.root_path_targets(amdm.layout, paths[i].double())
             g = torch.Generator().manual_seed(seed * 1000 + i)
-            mi = C.inpaint(amdm, start, con.targets, con.mask, g, start_pose=con.start_pose)
+            s0 = starts[i % len(starts)]
+            mi = C.inpaint(amdm, s0, con.targets, con.mask, g, start_pose=con.start_pose)
             d = (mi.root_xy - paths[i, 1:]).norm(dim=-1)
             rows.append(
                 {
@@ -471,7 +483,7 @@ def speed(start, args) -> None:
 
 
 def main() -> None:
-    global OUT, CURVES
+    global OUT, CURVES, TAG
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
         "--only",
@@ -495,15 +507,18 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", default=str(RESULTS / "rl_steering.jsonl"))
+    p.add_argument("--tag", default=None, help="a name for the rows (e.g. the policies' round)")
     p.add_argument("--curves", default=str(RESULTS / "rl_curves.jsonl"))
     args = p.parse_args()
-    OUT, CURVES = args.out, args.curves
+    OUT, CURVES, TAG = args.out, args.curves, args.tag
     torch.set_num_threads(args.threads)
-    emit({"bench": "config", **vars(args), **hardware()}, OUT)
+    emit({"bench": "config", **vars(args), "held_out_seed": HELD_OUT_SEED, **hardware()}, OUT)
     amdm_ckpt = minimdm.pretrained("amdm")
     amdm = C.Sampler.load(amdm_ckpt)
     start = evaluation.initial_state(amdm_ckpt, *START).features  # (D,)
     test = evaluation.checkpoint_clips(amdm_ckpt, split="test")
+    held = [c.name for c in test if c.labels["content"] in START_CONTENTS]
+    starts = torch.stack([evaluation.initial_state(amdm_ckpt, n, 20).features for n in held])
     skeleton = test[START[0]].skeleton
     walks = [c for c in test if c.labels["content"] == "walk"]
     walk_pos = torch.cat([torch.as_tensor(c.positions) for c in walks])
@@ -521,18 +536,18 @@ def main() -> None:
     if "curves" in args.only:
         curves(args)
     if "target" in args.only:
-        target(amdm, start, ctx, args)
+        target(amdm, starts, ctx, args)
     if "joystick" in args.only:
-        joystick(start, ctx, args)
+        joystick(starts, ctx, args)
     if "path" in args.only:
-        path(amdm, start, ctx, args)
+        path(amdm, starts, ctx, args)
     if "diversity" in args.only:
         diversity(start, args)
     if "speed" in args.only:
         speed(start, args)
 
 
-OUT = CURVES = None
+OUT = CURVES = TAG = None
 
 if __name__ == "__main__":
     main()

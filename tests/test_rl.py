@@ -34,9 +34,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 @pytest.fixture(scope="module")
 def base():
-    # the base model the shipped policies were trained on (issue 31 retrains them on checkpoints/
-    # amdm, whose x0 network erases pushes on its noisy levels: these tests then fail on it)
-    return minimdm.pretrained("amdm_halting")
+    return minimdm.pretrained("amdm")  # the base model the shipped policies steer
 
 
 @pytest.fixture(scope="module")
@@ -318,6 +316,35 @@ def test_vec_env_restarts_finished_episodes_in_the_same_step(base, starts):
     assert not np.allclose(obs, infos["final_obs"])
 
 
+def test_a_spin_ends_the_episode_when_max_turn_rate_is_set(base, starts):
+    """The yaw rate's half-second average is watched: pushed to turn hard every frame, the
+    characters pass 200 degrees per second within a few frames and their episodes end
+    (terminated, and restarted in the same step); without max_turn_rate they never do."""
+    cm = Sampler.load(base)
+    steer = ResidualSteerer(cm, ResidualSchedule.top(20, 10, tied=True), "root")
+    ends = {}
+    for limit in (None, 200.0):
+        env = SteeringVecEnv(cm, steer, JoystickTask(max_frames=200), starts, 4, seed=0,
+                             max_turn_rate=limit)  # fmt: skip
+        env.reset(seed=0)
+        a = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (4, 1))  # full yaw, every frame
+        ends[limit] = []
+        for f in range(60):
+            turn = env.turn.clone()
+            _, _, term, _, infos = env.step(a)
+            if term.any():
+                i = int(np.flatnonzero(term)[0])
+                assert "spun" in infos and infos["spun"][i] and infos["_final_obs"][i]
+                assert env.turn[i] == 0 and env.ch.frame[i] == 0  # restarted at once
+                ends[limit].append(f)
+            else:  # the average moves a 15th of the way to the new frame's yaw rate
+                yaw = env._feats(env.x)[:, cm.layout.yaw_rate.start]
+                torch.testing.assert_close(env.turn, turn + (yaw - turn) / 15)
+    assert ends[None] == [] and 0 < len(ends[200.0]) and ends[200.0][0] < 30, ends
+    with pytest.raises(ValueError, match="max_turn_rate"):
+        SteeringVecEnv(cm, steer, JoystickTask(), starts, 4, max_turn_rate=0.0)
+
+
 def test_env_refuses_actions_of_the_wrong_shape_or_not_finite(base, starts):
     env = build_env(
         RLConfig(task="target", num_envs=3, batch_size=96, features="root", n_levels=4), base
@@ -384,7 +411,7 @@ def tiny_policy(base, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("rl") / "target"
     config = RLConfig(
-        base="amdm_halting",
+        base="amdm",
         task="target",
         task_options={"max_frames": 150},
         steps=4,
@@ -423,7 +450,7 @@ def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny
     config, result, out = tiny_policy
     assert sorted(p.name for p in out.iterdir()) == ["log.jsonl", "model.json", "model.safetensors"]
     meta = result.checkpoint.metadata
-    assert meta["base"]["name"] == "amdm_halting" and meta["task"]["name"] == "target"
+    assert meta["base"]["name"] == "amdm" and meta["task"]["name"] == "target"
     assert meta["env_steps"] == config.total_steps
     steering = load_steering(out, task="target")
     assert steering.steerer.schedule.levels == (19, 13) and steering.cm.settings.steps == 4
@@ -434,9 +461,7 @@ def test_policy_checkpoint_acts_like_the_sb3_actor_and_is_not_pickled(base, tiny
 
 def test_policy_for_another_base_model_or_task_is_refused(tiny_policy):
     _, _, out = tiny_policy
-    with pytest.raises(
-        CheckpointMismatchError, match=r"trained on the base model 'amdm_halting'.*'mse'"
-    ):
+    with pytest.raises(CheckpointMismatchError, match=r"trained on the base model 'amdm'.*'mse'"):
         load_steering(out, base="mse")
     with pytest.raises(CheckpointMismatchError, match="task 'target', not 'joystick'"):
         load_steering(out, task="joystick")

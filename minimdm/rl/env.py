@@ -20,6 +20,7 @@ environment checker and the chapter's live widget use.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -52,6 +53,9 @@ __all__ = [
 OBSERVATIONS = ("frame", "root")
 """What a policy sees of the character besides its task: the whole current frame (the paper's
 choice, D numbers) or only its root velocity and yaw rate (3 numbers)."""
+TURN_FRAMES = 15
+"""Frames of the exponential average of the yaw rate that ``max_turn_rate`` watches (half a
+second at 30 fps)."""
 
 
 def _non_finite_row(x: Tensor) -> int | None:
@@ -211,6 +215,13 @@ class SteeringVecEnv(VectorEnv):
             paper; ``"root"``: only the frame's root velocity and yaw rate (normalized). With
             the whole frame, PPO within the book's budget mostly learned from the body's 255
             numbers and barely from the 4 to 10 that state the task (chapter 7 measures it).
+        max_turn_rate: terminate an episode when the character spins: when its yaw rate,
+            averaged over :data:`TURN_FRAMES` frames (an exponential average), exceeds this
+            many degrees per second (None: never). A base model that denoises the change from
+            the previous frame carries a pushed yaw rate on into the next frames; pushed too
+            hard, it spins on the spot, a motion the corpus never holds for half a second (its
+            99th percentile is about 240 degrees per second). The frame's reward is still paid;
+            the episode's later rewards are lost, which is what teaches the policy to keep out.
 
     Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's;
     (N, 3 + task.obs_dim) with ``observe="root"``.
@@ -230,6 +241,7 @@ class SteeringVecEnv(VectorEnv):
         action_penalty: float = 0.0,
         motion_penalty: float = 0.0,
         observe: str = "frame",
+        max_turn_rate: float | None = None,
     ) -> None:
         if observe not in OBSERVATIONS:
             raise ValueError(f"observe must be one of {OBSERVATIONS}, got {observe!r}")
@@ -239,6 +251,11 @@ class SteeringVecEnv(VectorEnv):
         self.cm, self.steerer, self.task = cm, steerer, task
         self.action_penalty = check_number("action_penalty", action_penalty, low=0.0)
         self.motion_penalty = check_number("motion_penalty", motion_penalty, low=0.0)
+        self.max_turn_rate = (
+            None
+            if max_turn_rate is None
+            else check_number("max_turn_rate", max_turn_rate, low=0.0, low_open=True)
+        )
         measurable = cm.skeleton is not None and cm.layout is not None
         if self.motion_penalty and not measurable:
             raise ValueError("motion_penalty needs a base model with a skeleton and a layout")
@@ -261,6 +278,7 @@ class SteeringVecEnv(VectorEnv):
         self.x = torch.zeros(self.num_envs, D, device=cm.device)
         self.ch = Characters.zeros(self.num_envs, cm.fps)
         self.returns = torch.zeros(self.num_envs)
+        self.turn = torch.zeros(self.num_envs)  # yaw rate (rad/frame), averaged over TURN_FRAMES
         self._rot_sl = (
             (cm.layout.root_vel, cm.layout.yaw_rate) if cm.layout else (slice(0, 2), slice(2, 3))
         )
@@ -276,6 +294,7 @@ class SteeringVecEnv(VectorEnv):
         self.ch.velocity[idx] = self._root_motion(self.x[idx], self.ch.heading[idx])[0]
         self.ch.frame[idx] = 0
         self.returns[idx] = 0
+        self.turn[idx] = 0
         self.task.reset(idx, self.ch)
         if self.quality is not None:
             self.quality.reset(idx, self._feats(self.x[idx]), self.ch.xy[idx], self.ch.heading[idx])
@@ -314,6 +333,7 @@ class SteeringVecEnv(VectorEnv):
         prev = self.ch.xy.clone()
         vel, yaw = self._root_motion(x, self.ch.heading)
         self.ch.heading = wrap_angle(self.ch.heading + yaw, include_pi=False)
+        self.turn = self.turn + (yaw.float().cpu() - self.turn) / TURN_FRAMES
         self.ch.velocity = vel
         self.ch.xy = self.ch.xy + vel / self.cm.fps
         self.ch.frame = self.ch.frame + 1
@@ -327,6 +347,10 @@ class SteeringVecEnv(VectorEnv):
         penalties)."""
         reward, terminated, info = self.task.step(self.ch, prev)
         info = {**info, "task_reward": reward}
+        if self.max_turn_rate is not None:
+            spun = self.turn.abs() * self.cm.fps > math.radians(self.max_turn_rate)
+            terminated = terminated | spun
+            info = {**info, "spun": spun}
         reward = reward - self.action_penalty * actions.pow(2).mean(1)
         if self.quality is not None:
             bone, slide = self.quality(self._feats(self.x), self.ch.xy, self.ch.heading)

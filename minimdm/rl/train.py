@@ -82,6 +82,10 @@ class RLConfig:
     motion_penalty: float = 0.0
     """Reward minus this per cm of the frame's bone length error plus foot sliding (stay on
     the data; see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
+    max_turn_rate: float | None = None
+    """End an episode (terminated: no more reward) when the character spins: its yaw rate,
+    averaged over about half a second, exceeds this many degrees per second (see
+    :class:`~minimdm.rl.env.SteeringVecEnv`). None: never."""
     observe: str = "frame"
     """What the policy sees besides the task: the whole current ``frame`` or only its ``root``
     velocity and yaw rate (see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
@@ -115,6 +119,8 @@ class RLConfig:
             check_int(name, getattr(self, name), low=1)  # 2.7 is refused, not rounded down
         for name in ("action_penalty", "motion_penalty"):
             check_number(name, getattr(self, name), low=0.0)
+        if self.max_turn_rate is not None:
+            check_number("max_turn_rate", self.max_turn_rate, low=0.0, low_open=True)
         for name in ("residual_scale", "latent_scale", "clip_range", "max_grad_norm"):
             check_number(name, getattr(self, name), low=0.0, low_open=True)
         check_number("lr", self.lr, low=0.0, low_open=True)
@@ -210,6 +216,7 @@ def build_env(
         action_penalty=config.action_penalty,
         motion_penalty=config.motion_penalty,
         observe=config.observe,
+        max_turn_rate=config.max_turn_rate,
     )
 
 
@@ -223,9 +230,10 @@ def _sb3():
     return VecEnv
 
 
-LOGGED_KEYS = ("task_reward", "bone_cm", "slide_cm")
+LOGGED_KEYS = ("task_reward", "bone_cm", "slide_cm", "spun")
 """Per-frame values the environment reports (the task's reward before penalties, the motion's
-quality), logged per rollout as means per frame."""
+quality, the share of frames that ended an episode in a spin), logged per rollout as means per
+frame."""
 
 
 class SB3VecEnv(_sb3()):
