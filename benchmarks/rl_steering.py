@@ -165,11 +165,12 @@ def curves(args) -> None:
             try:
                 r = train_policy(cfg, out, progress=False, num_threads=args.threads)
             except ValueError as e:  # PPO diverged: SB3's Gaussian got a NaN mean
-                emit({"curve": name, "seed": seed, "diverged": str(e).splitlines()[0]}, CURVES)
+                emit({"curve": name, "seed": seed, "tag": TAG, "diverged": str(e).splitlines()[0]},
+                     CURVES)  # fmt: skip
                 finals.append({"diverged": 1.0})
                 continue
             for row in r.history:
-                emit({"curve": name, "seed": seed, **row}, CURVES, quiet=True)
+                emit({"curve": name, "seed": seed, "tag": TAG, **row}, CURVES, quiet=True)
             finals.append(
                 {
                     "final_return": _tail_mean(r.history, "return_mean"),
