@@ -395,6 +395,7 @@ def path(amdm, starts, ctx, args) -> None:
             {
                 "deviation_mean_m": float(dev.mean()),
                 "deviation_max_m": float(dev.max(1).values.mean()),
+                "held_within_0.5m": float((dev.max(1).values < 0.5).float().mean()),
                 **quality(m.positions, m.features, [F] * N, ctx["skeleton"], ctx["offsets"], fps),
             }
         )
@@ -409,6 +410,7 @@ def path(amdm, starts, ctx, args) -> None:
                 {
                     "deviation_mean_m": float(d.mean()),
                     "deviation_max_m": float(d.max()),
+                    "held_within_0.5m": float(d.max() < 0.5),
                     **quality(
                         mi.positions[None],
                         mi.features[None],
