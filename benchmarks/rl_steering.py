@@ -476,6 +476,7 @@ def speed(start, args) -> None:
                 {
                     "bench": "speed",
                     "method": label,
+                    "tag": TAG,
                     "batch": 1,
                     "threads": 1,
                     "ms_per_frame": mean_ci(times),
