@@ -219,9 +219,10 @@ class SteeringVecEnv(VectorEnv):
             averaged over :data:`TURN_FRAMES` frames (an exponential average), exceeds this
             many degrees per second (None: never). A base model that denoises the change from
             the previous frame carries a pushed yaw rate on into the next frames; pushed too
-            hard, it spins on the spot, a motion the corpus never holds for half a second (its
-            99th percentile is about 240 degrees per second). The frame's reward is still paid;
-            the episode's later rewards are lost, which is what teaches the policy to keep out.
+            hard, it spins on the spot, faster than nearly every frame of the corpus turns (the
+            99th percentile of their yaw rates is about 240 degrees per second). The frame's
+            reward is still paid; the episode's later rewards are lost, which is meant to teach
+            the policy to keep out (on the joystick it did not help: chapter 7).
 
     Observation: (N, D + task.obs_dim) float32, the current frame (normalized) then the task's;
     (N, 3 + task.obs_dim) with ``observe="root"``.
