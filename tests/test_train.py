@@ -660,6 +660,17 @@ def test_cond_noise_perturbs_only_the_condition_the_denoiser_sees():
     frame_loss(delta, x, cond, torch.Generator().manual_seed(0), "amdm", sched, "x0", cond_noise=2)
     spread = (seen[-1] - cond).std(0) / delta.delta_k
     assert (spread - 2).abs().max() < 0.1
+    geo_seen = []
+
+    def geometry(x0_hat, prev, target, weight):  # a FrameGeometry's signature
+        geo_seen.append((x0_hat.clone(), prev.clone()))
+        return torch.zeros_like(weight)
+
+    g = torch.Generator().manual_seed(0)
+    frame_loss(delta, x, cond, g, "amdm", sched, "x0", cond_noise=2, geometry=geometry)
+    x0_hat, prev = geo_seen[-1]
+    assert torch.equal(prev, cond)  # the body's motion is measured from the recorded frame,
+    torch.testing.assert_close(x0_hat, seen[-1])  # the frame from the noised one (z0_hat = 0)
     with pytest.raises(ValueError, match="cond_noise needs model_kind: amdm"):
         tiny(model_kind="mvae", cond_noise=0.1)
     with pytest.raises(ValueError, match="cond_noise must be a finite float"):

@@ -169,7 +169,9 @@ def frame_loss(
     and this teaches it to lead them back to the data. A tensor (D,) gives each feature's own
     spread, in normalized frame units for every model (:func:`~minimdm.amdm.train` builds it
     from ``TrainConfig.cond_noise`` and ``cond_noise_motion``). ``cond_noise_draw="uniform"``
-    scales each sample's noise by a factor drawn uniformly in [0, 1].
+    scales each sample's noise by a factor drawn uniformly in [0, 1]. The ``geometry`` losses
+    read the displacement from the recorded ``cond``, not the noised one: the noise is what the
+    network sees, not how the body moved.
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -178,6 +180,7 @@ def frame_loss(
             raise ValueError("schedule is required for kind='amdm'")
         net = getattr(model, "module", model)  # the network inside a DDP wrapper
         delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
+        recorded = cond  # the geometry measures the motion from the recorded previous frame
         if isinstance(cond_noise, Tensor) or cond_noise > 0:
             spread = cond_noise  # a float is, for a delta model, in units of each feature's change
             if delta and not isinstance(spread, Tensor):
@@ -199,7 +202,7 @@ def frame_loss(
 
             def x0_loss(z0_hat: Tensor, t: Tensor) -> Tensor:
                 x0_hat = frame_of(z0_hat)
-                return geometry(x0_hat, cond, x, ac.to(x0_hat.device)[t])
+                return geometry(x0_hat, recorded, x, ac.to(x0_hat.device)[t])
 
         loss_kw = dict(norm=norm, x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor)
         z = net.to_delta(x, cond) if delta else x  # the frame, or its change from cond
