@@ -7,6 +7,7 @@ MVAE-style and MSE baselines, AAMDM.
 
     python benchmarks/locomotion.py checkpoints/amdm checkpoints/mvae
     python benchmarks/locomotion.py runs/x --samples 2 --long-seconds 0 --takes
+    python benchmarks/locomotion.py runs/x --split train   # held-in takes: pace or generalisation?
 """
 
 from __future__ import annotations
@@ -32,6 +33,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="denoising steps (default: T)")
     ap.add_argument("--eta", type=float, default=1.0, help="DDIM stochasticity with --steps")
     ap.add_argument("--corpus", default=None, help="labelled corpus (default: the checkpoint's)")
+    ap.add_argument(
+        "--split",
+        default="test",
+        choices=("test", "train"),
+        help="start from the held-out takes (the yardstick) or the training takes (diagnostic)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--takes", action="store_true", help="also print one line per take")
     ap.add_argument("--out", default=None, help="append the lines to this .jsonl file")
@@ -46,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         steps=args.steps,
         eta=args.eta,
         corpus=args.corpus,
+        split=args.split,
     )
     hw = hardware()
     for path in args.checkpoints:

@@ -59,6 +59,22 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
     assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])
 
 
+def test_the_held_in_diagnostic_starts_from_the_training_takes_long_enough(ckpt):
+    """split='train' starts from the training takes instead, leaving out (and naming) those
+    too short to start at start_frame; a split that does not exist is refused."""
+    p = LocomotionProtocol(n_samples=1, seconds=0.5, long_seconds=0.0, tail_seconds=0.5)
+    p = dataclasses.replace(p, split="train", start_frame=120)
+    rep = locomotion_report(ckpt, p)
+    train = locomotion_takes("bandai-namco-1", split="train")
+    short = {c.name for c in train if c.n_frames <= 121}
+    assert short and set(rep["skipped"]) == short
+    assert [r["take"] for r in rep["takes"]] == [n for n in train.names if n not in short]
+    assert not {r["take"] for r in rep["takes"]} & set(locomotion_takes("bandai-namco-1").names)
+    assert rep["protocol"]["split"] == "train"
+    with pytest.raises(InputError, match="split must be"):
+        LocomotionProtocol(split="val")
+
+
 def test_at_box_is_the_share_of_the_roots_features_on_the_clamps_edge(ckpt):
     """Root features pressed to the box count, in the denoiser's own normalized units; the
     joints do not."""

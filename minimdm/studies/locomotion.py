@@ -86,7 +86,12 @@ class LocomotionProtocol:
     eta: float = 1.0
     """DDIM stochasticity when ``steps`` is below T (1: as DDPM; 0: deterministic steps)."""
     corpus: str | None = None
-    """The labelled corpus whose test takes start the rollouts (None: the checkpoint's)."""
+    """The labelled corpus whose takes start the rollouts (None: the checkpoint's)."""
+    split: str = "test"
+    """Which of its takes: 'test' (held out: the yardstick), or 'train' (held in: a diagnostic
+    that tells a model which cannot hold a recording's pace from one that cannot generalise to
+    an unseen actor and content). Takes too short to start at ``start_frame`` are left out and
+    named in the report's ``skipped``."""
 
     def __post_init__(self) -> None:
         if self.start_frame < 1 or self.n_samples < 1:
@@ -97,6 +102,8 @@ class LocomotionProtocol:
             raise InputError(
                 f"tail_seconds must lie in (0, seconds={self.seconds}], got {self.tail_seconds}"
             )
+        if self.split not in ("test", "train"):
+            raise InputError(f"split must be 'test' or 'train', got {self.split!r}")
 
 
 def locomotion_takes(corpus: str, fps: float | None = None, split: str = "test") -> MotionDataset:
@@ -212,11 +219,13 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             f"checkpoint {ckpt.paths.weights} was trained on {corpus!r}, which has no labelled "
             "locomotion takes: pass a corpus (e.g. corpus='bandai-namco-1')"
         )
-    takes = locomotion_takes(corpus)  # at the recorded rate, which the model's must match
+    takes = locomotion_takes(corpus, split=p.split)  # at the recorded rate: the model's
     layout = check_corpus_match(ckpt, takes[0], corpus)
-    short = [c.name for c in takes if c.n_frames <= p.start_frame + 1]
-    if short:
-        raise InputError(f"start_frame {p.start_frame} is past the end of takes {short}")
+    skipped = [c.name for c in takes if c.n_frames <= p.start_frame + 1]
+    if len(skipped) == len(takes):
+        raise InputError(f"start_frame {p.start_frame} is past the end of every take {skipped}")
+    if skipped:
+        takes = MotionDataset([c for c in takes if c.n_frames > p.start_frame + 1])
     fps = layout.fps
     n_short = round(p.seconds * fps)
     n_frames = max(n_short, round(p.long_seconds * fps))
@@ -278,6 +287,7 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
         "takes": rows,
         "contents": {c: _pool([r for r in rows if r["content"] == c]) for c in LOCOMOTION},
         "all": _pool(rows),
+        "skipped": skipped,
         "seconds": round(gen_seconds, 1),
     }
 
