@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from hypothesis import assume, given
+from hypothesis import strategies as st
 
 from minimdm.amdm.train import TrainConfig, train_amdm
 from minimdm.checkpoint import load_checkpoint
@@ -57,6 +59,9 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
     all_ = rep["all"]
     assert all_["worst_speed_ratio_10s"] <= all_["speed_ratio_10s"]
     assert all_["FS_ratio"] == pytest.approx(all_["FS"] / all_["FS_data"])
+    from minimdm.studies.locomotion import pace_slope
+
+    assert all_["pace_slope_10s"] == pace_slope(rep["contents"])  # over the six contents
 
 
 def test_the_held_in_diagnostic_starts_from_the_training_takes_long_enough(ckpt):
@@ -118,6 +123,52 @@ def test_a_checkpoint_of_another_skeleton_or_rate_is_named(ckpt):
         locomotion_report(other, p)
     with pytest.raises(InputError, match="no labelled locomotion takes"):
         locomotion_report(ckpt, dataclasses.replace(p, corpus="deepmimic"))
+
+
+@given(
+    speeds=st.lists(st.floats(0.3, 4.0), min_size=2, max_size=6, unique=True),
+    gain=st.floats(0.2, 5.0),
+    power=st.floats(-1.0, 2.0),
+)
+def test_the_pace_kept_is_the_power_between_the_takes_speed_and_the_futures(speeds, gain, power):
+    """Futures at ``gain * take_speed ** power`` keep the pace ``power``: 1 for any constant
+    factor (a model a little fast everywhere still tells a dash from a walk), 0 for one pace."""
+    from minimdm.studies.locomotion import pace_slope
+
+    assume(max(speeds) / min(speeds) > 1.05)
+    contents = {
+        f"c{i}": {"take_speed": v, "speed_10s": gain * v**power} for i, v in enumerate(speeds)
+    }
+    assert pace_slope(contents) == pytest.approx(power, abs=1e-6)
+    assert pace_slope({"walk": contents["c0"], "idle": {}}) is None  # one content with speeds
+
+
+def test_the_study_grid_reads_the_pace_kept_from_rows_written_before_it(tmp_path):
+    import json
+
+    from minimdm.studies.locomotion import study_grid
+
+    contents = {
+        "walk": {"take_speed": 1.0, "speed_10s": 1.5},
+        "dash": {"take_speed": 4.0, "speed_10s": 1.5},
+    }
+    old = {
+        "name": "a",
+        "protocol": {"seed": 0},
+        "all": {"speed_ratio_10s": 1.0},
+        "contents": contents,
+    }
+    new = {
+        "name": "b",
+        "protocol": {"seed": 0},
+        "all": {"pace_slope_10s": 0.7},
+        "contents": contents,
+    }
+    path = tmp_path / "study.jsonl"
+    path.write_text(json.dumps(old) + "\n" + json.dumps(new) + "\n")
+    grid = study_grid(path)
+    assert grid["a"]["pace kept"] == pytest.approx(0.0)  # both end at 1.5 m/s: one pace
+    assert grid["b"]["pace kept"] == 0.7  # a row that measured it keeps its own
 
 
 def test_the_study_grid_pools_seeds_and_joins_table1(tmp_path):

@@ -16,6 +16,10 @@ rollout started from, the recording of the same actor and content:
   ``moving_ratio`` of the take's;
 * **foot sliding** and **joint acceleration** over the 10 s, against the same measures of the
   take itself (:mod:`minimdm.motion.metrics`), and **bone error** against the take's actor;
+* **pace kept** (:func:`pace_slope`): over the six contents, the slope of the log speed after
+  10 s against the log of the takes' own speed. 1: a dash stays as much faster than a backward
+  walk as in the data; 0: every start ends at one pace. A mean speed ratio near 1 can hide a
+  slope near 0, where the slow contents speed up as much as the fast ones slow down;
 * **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
   repeats one future scores low);
 * **at the box** after 60 s, for a denoiser that clamps its frames (``clip_x0``): the share of
@@ -56,6 +60,7 @@ __all__ = [
     "take_reference",
     "speed_curve",
     "locomotion_report",
+    "pace_slope",
     "STUDY_COLUMNS",
     "study_grid",
     "YARDSTICK_COLUMNS",
@@ -280,13 +285,14 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             if on_box is not None:
                 row["at_box_60s"] = float(on_box[i])
         rows.append(row)
+    contents = {c: _pool([r for r in rows if r["content"] == c]) for c in LOCOMOTION}
     return {
         "checkpoint": str(ckpt.paths.weights.parent),
         "kind": ckpt.kind,
         "protocol": asdict(p) | {"corpus": corpus},
         "takes": rows,
-        "contents": {c: _pool([r for r in rows if r["content"] == c]) for c in LOCOMOTION},
-        "all": _pool(rows),
+        "contents": contents,
+        "all": _pool(rows) | {"pace_slope_10s": pace_slope(contents)},
         "skipped": skipped,
         "seconds": round(gen_seconds, 1),
     }
@@ -324,9 +330,27 @@ def _pool(rows: list[dict]) -> dict[str, float]:
     return out
 
 
+def pace_slope(contents: dict[str, dict[str, Any]]) -> float | None:
+    """How much of each content's own pace the futures keep after 10 s.
+
+    ``contents`` maps a content to its pool (``take_speed`` and ``speed_10s``, m/s, as in
+    :func:`locomotion_report`). Returns the least-squares slope of ``log speed_10s`` against
+    ``log take_speed`` over the contents that have both: 1 where every content keeps its own
+    pace (or all are off by one factor), 0 where every start ends at one pace, negative where
+    the slow contents end faster than the fast ones. None with fewer than two such contents
+    of different speeds.
+    """
+    pairs = [(c["take_speed"], c["speed_10s"]) for c in contents.values() if "speed_10s" in c]
+    x, y = np.log(np.array(pairs, dtype=float).clip(min=1e-6)).reshape(-1, 2).T
+    if len(pairs) < 2 or np.ptp(x) == 0:
+        return None
+    return float(np.polyfit(x, y, 1)[0])
+
+
 STUDY_COLUMNS = {
     "speed 10 s": "speed_ratio_10s",
     "worst take": "worst_speed_ratio_10s",
+    "pace kept": "pace_slope_10s",
     "speed 60 s": "speed_ratio_60s",
     "moving 60 s": "moving_60s",
     "FS ×data": "FS_ratio",
@@ -355,7 +379,7 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
         if name not in loco and name not in table1:
             raise ValueError(f"{path} holds no row of the run {name!r}")
         row: dict[str, Any] = {}
-        seeds = [rec["all"] for rec in loco.get(name, {}).values()]
+        seeds = [_with_pace(rec) for rec in loco.get(name, {}).values()]
         for header, key in STUDY_COLUMNS.items():
             row[header] = _over_seeds([s[key] for s in seeds if key in s])
         row["seeds"] = len(seeds)
@@ -401,6 +425,15 @@ def study_contents(
         seeds = list(loco[name].values())
         out[name] = {c: _over_seeds([s["contents"][c][key] for s in seeds]) for c in contents}
     return out
+
+
+def _with_pace(rec: dict) -> dict:
+    """A study record's ``all`` pool with the pace kept, from its content pools where the row
+    was written before the yardstick measured it."""
+    pool = rec["all"]
+    if "pace_slope_10s" not in pool and rec.get("contents"):
+        pool = pool | {"pace_slope_10s": pace_slope(rec["contents"])}
+    return pool
 
 
 def _study_records(path: str | Path) -> tuple[dict[str, dict[int, dict]], dict[str, dict]]:
