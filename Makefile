@@ -36,7 +36,7 @@ setup: $(STAMP)
 test: $(STAMP)
 	$(PY) -m ruff check minimdm tests benchmarks notebooks
 	$(PY) -m ruff format --check minimdm tests benchmarks notebooks
-	$(PY) -m pytest -q -p no:cacheprovider tests
+	$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile tests
 	$(PY) -m pytest -q -p no:cacheprovider $(NBVAL) -n 2 --dist loadfile notebooks
 
 # Every chapter's checked outputs under the machine's own CPU dispatch, then under $(DISPATCH):
