@@ -141,6 +141,7 @@ def test_the_pace_kept_is_the_power_between_the_takes_speed_and_the_futures(spee
     }
     assert pace_slope(contents) == pytest.approx(power, abs=1e-6)
     assert pace_slope({"walk": contents["c0"], "idle": {}}) is None  # one content with speeds
+    assert pace_slope({}) is None
 
 
 def test_the_study_grid_reads_the_pace_kept_from_rows_written_before_it(tmp_path):

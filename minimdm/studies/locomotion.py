@@ -341,8 +341,10 @@ def pace_slope(contents: dict[str, dict[str, Any]]) -> float | None:
     of different speeds.
     """
     pairs = [(c["take_speed"], c["speed_10s"]) for c in contents.values() if "speed_10s" in c]
-    x, y = np.log(np.array(pairs, dtype=float).clip(min=1e-6)).reshape(-1, 2).T
-    if len(pairs) < 2 or np.ptp(x) == 0:
+    if len(pairs) < 2:
+        return None
+    x, y = np.log(np.array(pairs, dtype=float).clip(min=1e-6)).T
+    if np.ptp(x) == 0:
         return None
     return float(np.polyfit(x, y, 1)[0])
 
@@ -381,7 +383,7 @@ def study_grid(path: str | Path, names: list[str] | None = None) -> dict[str, di
         row: dict[str, Any] = {}
         seeds = [_with_pace(rec) for rec in loco.get(name, {}).values()]
         for header, key in STUDY_COLUMNS.items():
-            row[header] = _over_seeds([s[key] for s in seeds if key in s])
+            row[header] = _over_seeds([s[key] for s in seeds if s.get(key) is not None])
         row["seeds"] = len(seeds)
         for k in ("APD", "ADE", "FDE"):
             cell = table1.get(name, {}).get(k)
