@@ -149,6 +149,7 @@ def frame_loss(
     snr_floor: float = 0.0,
     cond_noise: float | Tensor = 0.0,
     cond_noise_draw: str = "fixed",
+    delta_from: str = "seen",
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
@@ -171,7 +172,9 @@ def frame_loss(
     from ``TrainConfig.cond_noise`` and ``cond_noise_motion``). ``cond_noise_draw="uniform"``
     scales each sample's noise by a factor drawn uniformly in [0, 1]. The ``geometry`` losses
     read the displacement from the recorded ``cond``, not the noised one: the noise is what the
-    network sees, not how the body moved.
+    network sees, not how the body moved. A delta model's change is measured from the noised
+    condition (``delta_from="seen"``: the change also undoes the noise), or from the recorded
+    one (``"recorded"``: the change alone; the prediction is then the recorded frame plus it).
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -193,8 +196,12 @@ def frame_loss(
                 noise = noise * size.to(cond.dtype)
             cond = cond + noise
 
+        if delta_from not in ("seen", "recorded"):
+            raise ValueError(f"delta_from must be 'seen' or 'recorded', got {delta_from!r}")
+        start = recorded if delta_from == "recorded" else cond  # the change's origin
+
         def frame_of(z: Tensor) -> Tensor:  # the frame of the chain's sample z
-            return net.from_delta(z, cond) if delta else z
+            return net.from_delta(z, start) if delta else z
 
         x0_loss = None
         if geometry is not None:
@@ -205,7 +212,7 @@ def frame_loss(
                 return geometry(x0_hat, recorded, x, ac.to(x0_hat.device)[t])
 
         loss_kw = dict(norm=norm, x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor)
-        z = net.to_delta(x, cond) if delta else x  # the frame, or its change from cond
+        z = net.to_delta(x, start) if delta else x  # the frame, or its change
         loss, z0_hat = diffusion_loss(
             model, schedule, z, cond, generator, predicts, reduce=False, **loss_kw
         )
@@ -239,6 +246,7 @@ def window_loss(
     snr_floor: float = 0.0,
     cond_noise: float | Tensor = 0.0,
     cond_noise_draw: str = "fixed",
+    delta_from: str = "seen",
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -269,7 +277,7 @@ def window_loss(
     B, n1, _ = windows.shape
     model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
-    loss_kw.update(cond_noise=cond_noise, cond_noise_draw=cond_noise_draw)
+    loss_kw.update(cond_noise=cond_noise, cond_noise_draw=cond_noise_draw, delta_from=delta_from)
 
     def loss_of(x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
         """Eq. 3 (or the baseline's loss) per sample of frames x after ``cond``, and the

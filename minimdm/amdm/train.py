@@ -58,6 +58,7 @@ from minimdm.amdm.train_config import (
     learning_rate,
     load_config,
     motion_mask,
+    root_mask,
     student_probability,
 )
 from minimdm.checkpoint import Checkpoint, load_checkpoint
@@ -361,7 +362,7 @@ def _cond_spread(config: TrainConfig, model: nn.Module) -> float | torch.Tensor:
     """The spread of the condition noise: ``cond_noise`` as a float (the loss reads it in a
     delta model's units of change), or with ``cond_noise_motion`` each feature's spread (D,) in
     normalized frame units, the two noises independent."""
-    if config.cond_noise_motion <= 0:
+    if config.cond_noise_motion <= 0 and config.cond_noise_root == 1:
         return config.cond_noise
     net = getattr(model, "module", model)
     x_dim = net.config.x_dim
@@ -369,7 +370,9 @@ def _cond_spread(config: TrainConfig, model: nn.Module) -> float | torch.Tensor:
     if net.is_delta:
         base = net.delta_spread.cpu() * config.cond_noise
     motion = torch.tensor(motion_mask(x_dim)) * config.cond_noise_motion
-    return (base**2 + motion**2).sqrt().to(net.delta_spread.device)
+    root = torch.tensor(root_mask(x_dim))  # the pace, scaled by cond_noise_root
+    factor = 1 - root * (1 - config.cond_noise_root)
+    return ((base**2 + motion**2).sqrt() * factor).to(net.delta_spread.device)
 
 
 def _batch_loss(
@@ -387,6 +390,7 @@ def _batch_loss(
         snr_floor=config.snr_floor,
         cond_noise=_cond_spread(config, state.model),
         cond_noise_draw=config.cond_noise_draw,
+        delta_from=config.delta_from,
         geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )
 

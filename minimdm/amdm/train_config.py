@@ -143,6 +143,16 @@ class TrainConfig:
     ``cond_noise`` and ``cond_noise_motion``), or 'uniform' (each condition's spreads are
     those times a factor drawn uniformly in [0, 1], so that the model meets departures of every
     size up to the spread: small ones to keep, large ones to undo)."""
+    cond_noise_root: float = 1.0
+    """A factor on the condition noise of the root's d_x, d_y, d_r, the pace (amdm only). The
+    network learns to undo the noise: for the pace that means pulling every noised pace towards
+    the commonest one, a pull the rollout repeats at every frame (chapter 3, "The pace of one").
+    0 shows the network the recorded pace, the pose still noised."""
+    delta_from: str = "seen"
+    """From which previous frame a ``delta`` model's change is measured in training, with
+    condition noise: 'seen' (the noised condition the network sees, so that the change also
+    undoes the noise), or 'recorded' (the frame before the noise: the network learns the
+    recorded change alone; :func:`~minimdm.amdm.losses.frame_loss`)."""
     clip_x0: float | str | None = "data"
     """Clamp x0 estimates when fed back and when sampling: 'data' (the per-feature range of the
     normalized training frames), a float c ([-c, c]), or None."""
@@ -258,6 +268,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be a finite float >= 0, got {spread}")
             if spread > 0 and self.model_kind != "amdm":
                 raise ValueError(f"{name} needs model_kind: amdm, got {self.model_kind!r}")
+        if not (0 <= self.cond_noise_root <= 1):
+            raise ValueError(f"cond_noise_root must be in [0, 1], got {self.cond_noise_root}")
+        if self.delta_from not in ("seen", "recorded"):
+            raise ValueError(f"delta_from must be 'seen' or 'recorded', got {self.delta_from!r}")
         if self.cond_noise_draw not in ("fixed", "uniform"):
             raise ValueError(
                 f"cond_noise_draw must be 'fixed' or 'uniform', got {self.cond_noise_draw!r}"
@@ -313,7 +327,7 @@ def build_network(
         skip = weights(config.skip_sigma) if config.skip_sigma > 0 else None
         mask = None
         if skip is not None and config.skip_features == "root":
-            mask = _root_mask(x_dim)
+            mask = root_mask(x_dim)
         dc = DenoiserConfig(
             x_dim,
             x_dim,
@@ -357,7 +371,7 @@ def _delta_mask(config: TrainConfig, x_dim: int) -> list[float] | None:
     if not config.delta or config.delta_features == "all":
         return None
     if config.delta_features == "root":
-        return _root_mask(x_dim)
+        return root_mask(x_dim)
     n_joints = (x_dim - 3) // 12  # FeatureLayout: 3 + 12 J, the positions right after the root
     if config.delta_features == "rotations":  # j_o, the last 6 J
         return [0.0] * (3 + 6 * n_joints) + [1.0] * (6 * n_joints)
@@ -372,6 +386,6 @@ def motion_mask(x_dim: int) -> list[float]:
     return [1.0] * 3 + [0.0] * (3 * n_joints) + [1.0] * (3 * n_joints) + [0.0] * (6 * n_joints)
 
 
-def _root_mask(x_dim: int) -> list[float]:
+def root_mask(x_dim: int) -> list[float]:
     """1 for the root's d_x, d_y, d_r (FeatureLayout's first three features), 0 elsewhere."""
     return [1.0] * 3 + [0.0] * (x_dim - 3)
