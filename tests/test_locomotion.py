@@ -62,6 +62,33 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
     from minimdm.studies.locomotion import pace_slope
 
     assert all_["pace_slope_10s"] == pace_slope(rep["contents"])  # over the six contents
+    for r in rep["takes"]:  # shares of the last tail's frames nearest a locomotion take's
+        for key in ("locomotion_10s", "locomotion_60s", "content_10s"):
+            assert 0.0 <= r[key] <= 1.0
+        assert r["content_10s"] <= r["locomotion_10s"]  # its own content is locomotion
+        assert r["locomotion_data"] > 0.8  # the takes themselves look like locomotion
+    assert all_["locomotion_data"] > 0.95 and 0.5 < all_["content_data"] < 1.0
+
+
+def test_the_content_index_names_the_content_of_the_nearest_training_frame():
+    """Training frames find themselves (their take's content, -1 for a gesture); a frame moved
+    towards another take's frame takes that take's content once it is nearer to it."""
+    from minimdm.motion.corpora import load_motion
+    from minimdm.motion.features import encode
+    from minimdm.studies.locomotion import ContentIndex
+
+    index = ContentIndex("bandai-namco-1")
+    assert set(index.labels.unique().tolist()) == {-1, *range(len(LOCOMOTION))}
+    train = {c.name: c for c in load_motion("bandai-namco-1", split="train")}
+    walk, bow = (
+        encode(train["dataset-1_walk_normal_002"]),
+        encode(train["dataset-1_bow_normal_001"]),
+    )
+    assert index.classify(walk[::10]).eq(LOCOMOTION.index("walk")).all()
+    assert index.classify(bow[::10]).eq(-1).all()
+    a, b = walk[20], bow[20]
+    on_the_way = torch.stack([a + w * (b - a) for w in (0.02, 0.98)])
+    assert index.classify(on_the_way).tolist() == [LOCOMOTION.index("walk"), -1]
 
 
 def test_the_held_in_diagnostic_starts_from_the_training_takes_long_enough(ckpt):
