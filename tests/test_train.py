@@ -211,6 +211,7 @@ def test_half_storage_keeps_full_precision_for_resume(tmp_path):
         train_amdm(cfg, tmp_path / "half", feats, progress=False, callback=crash)
     half = load_checkpoint(tmp_path / "half")
     assert half.metadata["storage"] == "float16"
+
     def tensor_bytes(path):  # a safetensors file: 8 bytes of header length, header, tensors
         with open(path, "rb") as f:
             header = int.from_bytes(f.read(8), "little")
