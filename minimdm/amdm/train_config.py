@@ -144,10 +144,10 @@ class TrainConfig:
     those times a factor drawn uniformly in [0, 1], so that the model meets departures of every
     size up to the spread: small ones to keep, large ones to undo)."""
     cond_noise_root: float = 1.0
-    """A factor on the condition noise of the root's d_x, d_y, d_r, the pace (amdm only). The
-    network learns to undo the noise: for the pace that means pulling every noised pace towards
-    the commonest one, a pull the rollout repeats at every frame (chapter 3, "The pace of one").
-    0 shows the network the recorded pace, the pose still noised."""
+    """A factor on the condition noise of the root's d_x, d_y, d_r, the pace (amdm only); 0
+    shows the network the recorded pace, the pose still noised. Chapter 3's tenth round tried
+    it on the guess that undoing a noised pace pulls every pace towards the commonest one: it
+    kept less of each content's pace, not more."""
     delta_from: str = "seen"
     """From which previous frame a ``delta`` model's change is measured in training, with
     condition noise: 'seen' (the noised condition the network sees, so that the change also
