@@ -136,7 +136,10 @@ def test_the_model_steps_on_its_own_30_hz_clock(browser, site):
     advanced = (int(s["frames"]) - f0) * 5.0 / (t1 - t0)  # per 5 s of wall time
     print(f"live page: {advanced:.0f} frames in 5 s, counter {s['fps']}/s, {s['speed']} m/s")
     assert 135 <= advanced <= 165, s
-    assert 27 <= float(s["fps"]) <= 33, s  # the page's own counter, over its last second
+    # The page's own counter, over its last second. After a stall the clock catches up by at
+    # most 5 periods (live.js resets it beyond that), so one second may hold 30 +- 5 steps:
+    # CI's loaded 2-core runner showed 33.3 while 151 frames advanced in 5 s.
+    assert 25 <= float(s["fps"]) <= 35, s
     assert 0.05 < float(s["speed"]) < 4.5, s  # m/s in model time: walking, not a blur
     assert not errors and not outside
 
