@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from minimdm.amdm.sampling import rollout
+from minimdm.amdm.sampling import history_of, rollout
 from minimdm.checkpoint import DEFAULT_FPS, Checkpoint
 from minimdm.motion import metrics
 from minimdm.motion.corpora import load_motion
@@ -125,6 +125,23 @@ class InitialState:
     """(F_ref, J, 3) ground-truth positions of the frames after it, or None."""
     bone_lengths: np.ndarray | None = field(default=None, repr=False)
     """(J - 1,) the clip's own bone lengths (actors differ), the reference of Bone.Err."""
+    past: Tensor | None = field(default=None, repr=False)
+    """(P, D) the feature rows that end with x_0 (up to :data:`PAST_FRAMES` of them), for a
+    model that conditions on several frames; None: x_0 alone."""
+
+    def condition(self, history: int) -> Tensor:
+        """x_0 (D,) for ``history`` 1, else the ``history`` frames (H, D) that end with it. A
+        state nearer the clip's start than that repeats the clip's first frame before it."""
+        if history == 1:
+            return self.features
+        past = self.past if self.past is not None else self.features[None]
+        if history > len(past):
+            past = torch.cat([past[:1].expand(history - len(past), -1), past])
+        return past[-history:]
+
+
+PAST_FRAMES = 30
+"""How many frames an :class:`InitialState` keeps before and with x_0."""
 
 
 def checkpoint_skeleton(ckpt: Checkpoint) -> Skeleton:
@@ -189,7 +206,8 @@ def _state(clip, feats: Tensor, frame: int, ref_frames: int) -> InitialState:
     ref = clip.positions[frame + 1 : frame + 1 + ref_frames] if ref_frames else None
     sk = clip.skeleton
     bones = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
-    return InitialState(clip.name, frame, feats[frame - 1], sp, ref, bones)
+    past = feats[max(0, frame - PAST_FRAMES) : frame]  # the rows that end with x_0
+    return InitialState(clip.name, frame, feats[frame - 1], sp, ref, bones, past)
 
 
 def initial_state(
@@ -253,6 +271,13 @@ def continuation_states(
     return out
 
 
+def _conditions(ckpt: Checkpoint, states: Sequence[InitialState]) -> Tensor:
+    """The start of a rollout from each state: x_0 (C, D), or the H frames that end with it
+    (C, H, D) for a model that conditions on H (:attr:`InitialState.condition`)."""
+    history = history_of(ckpt.model)
+    return torch.stack([s.condition(history) for s in states])
+
+
 def _stack_start(states: Sequence[InitialState]) -> StartPose:
     xy = torch.stack([torch.as_tensor(s.start_pose.xy, dtype=torch.float64) for s in states])
     h = torch.stack([torch.as_tensor(s.start_pose.heading, dtype=torch.float64) for s in states])
@@ -283,7 +308,7 @@ def evaluate(
     if foot_offset is None:
         foot_offset = _foot_offset(checkpoint_clips(ckpt), sk)
     ckpt_len = metrics.skeleton_bone_lengths(sk.offsets, sk.parents)
-    x0 = torch.stack([s.features for s in states])  # (C, D)
+    x0 = _conditions(ckpt, states)  # (C, D), or (C, H, D) for a history of H
     start = _stack_start(states)
     P = protocol
 
@@ -402,7 +427,8 @@ def time_per_frame(
 ) -> float:
     """Median wall time of one generated frame, in ms, for a batch of ``batch`` characters."""
     state = initial_state(ckpt, checkpoint_clips(ckpt).names[0], 1)
-    x0 = state.features[None].expand(batch, -1)
+    x0 = _conditions(ckpt, [state])
+    x0 = x0.expand(batch, *x0.shape[1:])  # (B, D) or (B, H, D)
     g = torch.Generator(device=device).manual_seed(0)
     kw = dict(steps=steps, generator=g, decode_positions=False, device=device)
     rollout(ckpt, x0, 2, **kw)  # warm-up
@@ -441,7 +467,7 @@ def drift(
     g = torch.Generator(device=device).manual_seed(seed)
     r = rollout(
         ckpt,
-        state.features,
+        _conditions(ckpt, [state]),
         n_frames,
         n_samples,
         steps=steps,
@@ -536,7 +562,7 @@ def memorisation_probe(
     training = torch.cat([encode(c) for c in checkpoint_clips(ckpt, unrolled=False)])
     held_clips = _start_clips(ckpt, protocol, unrolled=False)
     states = random_states(held_clips, protocol.n_states, protocol.ade_frames, protocol.state_seed)
-    x0 = torch.stack([s.features for s in states])  # (C, D)
+    x0 = _conditions(ckpt, states)  # (C, D), or (C, H, D) for a history of H
 
     def stats(d: np.ndarray) -> dict[str, float]:
         return {

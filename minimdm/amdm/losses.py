@@ -153,6 +153,9 @@ def frame_loss(
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
+    A model with a history of H frames takes ``cond`` (B, H D), the frames before ``x``
+    oldest first; the delta and the geometry read the last of them, :math:`x_{f-1}`.
+
     * amdm: the DDPM loss (A-MDM eq. 3), squared (``norm="l2"``) or absolute (``"l1"``), plus
       the ``geometry`` losses of the reconstruction if given, each level weighted by Min-SNR-γ
       when ``snr_gamma`` is given (:func:`~minimdm.diffusion.diffusion_loss`); the prediction is
@@ -184,10 +187,13 @@ def frame_loss(
         net = getattr(model, "module", model)  # the network inside a DDP wrapper
         delta = getattr(net, "is_delta", False)  # DenoiserConfig.delta_scale
         recorded = cond  # the geometry measures the motion from the recorded previous frame
+        history = cond.shape[1] // x.shape[1]  # frames in the condition
         if isinstance(cond_noise, Tensor) or cond_noise > 0:
             spread = cond_noise  # a float is, for a delta model, in units of each feature's change
             if delta and not isinstance(spread, Tensor):
                 spread = net.delta_spread * cond_noise
+            if isinstance(spread, Tensor) and spread.numel() == x.shape[1] < cond.shape[1]:
+                spread = spread.repeat(history)  # each frame of the history alike
             noise = spread * torch.randn(
                 cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
             )
@@ -199,6 +205,7 @@ def frame_loss(
         if delta_from not in ("seen", "recorded"):
             raise ValueError(f"delta_from must be 'seen' or 'recorded', got {delta_from!r}")
         start = recorded if delta_from == "recorded" else cond  # the change's origin
+        previous = recorded[:, -x.shape[1] :]  # x_{f-1} as recorded (B, D)
 
         def frame_of(z: Tensor) -> Tensor:  # the frame of the chain's sample z
             return net.from_delta(z, start) if delta else z
@@ -209,7 +216,7 @@ def frame_loss(
 
             def x0_loss(z0_hat: Tensor, t: Tensor) -> Tensor:
                 x0_hat = frame_of(z0_hat)
-                return geometry(x0_hat, recorded, x, ac.to(x0_hat.device)[t])
+                return geometry(x0_hat, previous, x, ac.to(x0_hat.device)[t])
 
         loss_kw = dict(norm=norm, x0_loss=x0_loss, snr_gamma=snr_gamma, snr_floor=snr_floor)
         z = net.to_delta(x, start) if delta else x  # the frame, or its change
@@ -247,6 +254,7 @@ def window_loss(
     cond_noise: float | Tensor = 0.0,
     cond_noise_draw: str = "fixed",
     delta_from: str = "seen",
+    history: int = 1,
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -270,11 +278,16 @@ def window_loss(
     loss of the same windows, as the official A-MDM trainer does at every student step: the
     fit to ground-truth conditions is kept while the model learns to recover from its own.
 
+    A model with a ``history`` of H frames takes windows (B, H - 1 + N_r + 1, D): the first H
+    frames are the recorded condition of the first predicted frame, and each later condition
+    drops its oldest frame for the one just fed back (recorded or the student's own).
+
     Returns the mean loss over frames and samples, and the fraction of student conditions
     used. With ``p_student = 0`` all frames run as one batch.
     """
-    bounds = _check_window_loss(windows, clip_x0, teacher_weight)
-    B, n1, _ = windows.shape
+    bounds = _check_window_loss(windows, clip_x0, teacher_weight, history)
+    B, n1, D = windows.shape
+    H = history
     model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
     loss_kw.update(cond_noise=cond_noise, cond_noise_draw=cond_noise_draw, delta_from=delta_from)
@@ -289,12 +302,12 @@ def window_loss(
         return _draw(model, c, generator, schedule, predicts, student_steps, bounds)
 
     if p_student <= 0:  # teacher forcing
-        return loss_of(*_teacher_forced(windows))[0].mean(), {"student_frac": 0.0}
+        return loss_of(*_teacher_forced(windows, H))[0].mean(), {"student_frac": 0.0}
     if student_steps and kind != "amdm":
         raise ValueError(f"student_steps needs kind='amdm', got {kind!r}")
-    cond = windows[:, 0]  # c_1 = x_0, (B, D)
+    cond = windows[:, :H].reshape(B, H * D)  # c_1 = x_0 (and the frames before it), (B, H D)
     losses, n_student = [], 0
-    for f in range(1, n1):  # roll out over the N_r frames
+    for f in range(H, n1):  # roll out over the N_r frames
         loss_f, pred = loss_of(windows[:, f], cond)  # eq. 3 at frame f
         losses.append(loss_f)
         if f + 1 < n1:  # c_{f+1}: the student's own \hat x_f w.p. p_student, else x_f
@@ -305,20 +318,25 @@ def window_loss(
                 pred[coin] = draw(cond[coin])
             pred = clamp_x0(pred, bounds)
             n_student += int(coin.sum())
-            cond = torch.where(coin[:, None], pred, windows[:, f])
-    frac = n_student / (B * max(n1 - 2, 1))
+            fed = torch.where(coin[:, None], pred, windows[:, f])  # (B, D)
+            cond = torch.cat([cond[:, D:], fed], dim=1)  # the oldest frame out, x_f in
+    frac = n_student / (B * max(n1 - H - 1, 1))
     loss = torch.stack(losses).mean()
     if teacher_weight > 0:  # the official A-MDM trainer's teacher-forced term
-        loss = loss + teacher_weight * loss_of(*_teacher_forced(windows))[0].mean()
+        loss = loss + teacher_weight * loss_of(*_teacher_forced(windows, H))[0].mean()
     return loss, {"student_frac": frac}
 
 
-def _check_window_loss(windows: Tensor, clip_x0: Any, teacher_weight: float) -> Any:
-    """Refuse windows that are not (B, N_r + 1 >= 2, D) and a negative ``teacher_weight``;
-    return the clamp's bounds (:func:`~minimdm.diffusion.clip_bounds`)."""
-    if windows.dim() != 3 or windows.shape[1] < 2:
+def _check_window_loss(windows: Tensor, clip_x0: Any, teacher_weight: float, history: int) -> Any:
+    """Refuse windows that are not (B, history - 1 + N_r + 1, D) with N_r >= 1, a history below
+    1 and a negative ``teacher_weight``; return the clamp's bounds
+    (:func:`~minimdm.diffusion.clip_bounds`)."""
+    if not isinstance(history, int) or history < 1:
+        raise ValueError(f"history must be an int >= 1, got {history!r}")
+    if windows.dim() != 3 or windows.shape[1] < history + 1:
         raise ValueError(
-            f"windows must have shape (B, N_r + 1 >= 2, D), got {tuple(windows.shape)}"
+            f"windows must have shape (B, {history - 1} + N_r + 1 >= {history + 1}, D) for a "
+            f"history of {history}, got {tuple(windows.shape)}"
         )
     bounds = clip_bounds(clip_x0, windows.shape[2], windows.device, windows.dtype)
     if teacher_weight < 0:
@@ -326,13 +344,14 @@ def _check_window_loss(windows: Tensor, clip_x0: Any, teacher_weight: float) -> 
     return bounds
 
 
-def _teacher_forced(windows: Tensor) -> tuple[Tensor, Tensor]:
-    """Teacher forcing: every frame (B N_r, D) of windows (B, N_r + 1, D), and its ground-truth
-    predecessor as its condition (B N_r, D), as one batch."""
+def _teacher_forced(windows: Tensor, history: int = 1) -> tuple[Tensor, Tensor]:
+    """Teacher forcing: every frame (B N_r, D) of windows (B, H - 1 + N_r + 1, D) after the
+    first H, and its H recorded predecessors as its condition (B N_r, H D), as one batch."""
     B, n1, D = windows.shape
-    x = windows[:, 1:].reshape(B * (n1 - 1), D)  # (B N_r, D)
-    cond = windows[:, :-1].reshape(B * (n1 - 1), D)
-    return x, cond
+    n = n1 - history  # N_r
+    x = windows[:, history:].reshape(B * n, D)  # (B N_r, D)
+    cond = torch.stack([windows[:, i : i + n] for i in range(history)], dim=2)  # (B, N_r, H, D)
+    return x, cond.reshape(B * n, history * D)
 
 
 @torch.no_grad()

@@ -54,7 +54,8 @@ class DenoiserConfig:
     x_dim: int
     """Dimension D of one frame (the noisy input and the output)."""
     cond_dim: int
-    """Dimension of the condition, the previous frame x_{f-1} (0 for none)."""
+    """Dimension of the condition: the previous frame x_{f-1}, or the ``history`` frames
+    before x_f, oldest first (then ``history * x_dim``); 0 for none."""
     width: int = 1024
     """Hidden units per layer (A-MDM: 1024)."""
     depth: int = 10
@@ -82,6 +83,10 @@ class DenoiserConfig:
     delta_mask: list[float] | None = None
     """With ``delta_scale``: one 0/1 per feature, 1 where the chain denoises the change (the
     others are denoised as they are, :math:`k` ignored); None: all features."""
+    history: int = 1
+    """How many previous frames the condition holds: 1, the paper's :math:`x_{f-1}`; H > 1,
+    :math:`[x_{f-H}, \\dots, x_{f-1}]` flattened, oldest first (``cond_dim = H x_dim``). A
+    delta model's change is still measured from :math:`x_{f-1}`, the last of them."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -123,12 +128,17 @@ class MLPDenoiser(MLP):
             )
         if config.predicts not in PREDICTS:
             raise ValueError(f"predicts must be one of {PREDICTS}, got {config.predicts!r}")
-        w = config.width
+        w, w0 = config.width, config.x_dim
         time_mlp = MLP(config.time_dim, w, w, depth=2, norm=False).sequential()  # e^t -> (B, W)
         super().__init__(config.x_dim + config.cond_dim, config.x_dim, w, config.depth)
         self.time_mlp = time_mlp
         self.config = config
         self.predicts = config.predicts
+        if config.history < 1 or (config.history > 1 and config.cond_dim != config.history * w0):
+            raise ValueError(
+                f"a history of {config.history} frames needs cond_dim = {config.history} * "
+                f"{w0}, got {config.cond_dim}"
+            )
         if config.skip is not None and config.predicts != "x0":
             raise ValueError(f"skip needs predicts='x0', got {config.predicts!r}")
         for name in ("skip_root", "skip_yaw"):
@@ -178,12 +188,16 @@ class MLPDenoiser(MLP):
         vary by about a tenth of that spread, little more than the least noisy level of a
         20-level cosine schedule leaves. The change, scaled by its own spread, varies on the
         scale the noise schedule is made for."""
-        return (x - self.delta_m * cond) / self.delta_k if self.is_delta else x
+        return (x - self.delta_m * self.last(cond)) / self.delta_k if self.is_delta else x
 
     def from_delta(self, z: Tensor, cond: Tensor) -> Tensor:
         """The next frame of a chain's sample ``z`` (B, D) after ``cond``: the inverse of
         :meth:`to_delta`."""
-        return self.delta_m * cond + self.delta_k * z if self.is_delta else z
+        return self.delta_m * self.last(cond) + self.delta_k * z if self.is_delta else z
+
+    def last(self, cond: Tensor) -> Tensor:
+        """The previous frame :math:`x_{f-1}` (B, D) of a condition (B, history D)."""
+        return cond if self.config.history == 1 else cond[..., -self.config.x_dim :]
 
     def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
         c = self.config

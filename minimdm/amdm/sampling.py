@@ -70,6 +70,7 @@ __all__ = [
     "check_finite",
     "autoregress",
     "Sampler",
+    "history_of",
     "rollout",
 ]
 
@@ -291,6 +292,11 @@ class Sampler:
         return _x_dim(self.net)
 
     @property
+    def history(self) -> int:
+        """H, how many previous frames the model conditions on (the paper's model: 1)."""
+        return history_of(self.net)
+
+    @property
     def fps(self) -> float:
         return self.layout.fps if self.layout is not None else DEFAULT_FPS
 
@@ -315,7 +321,8 @@ class Sampler:
         x_start: Tensor | None = None,
     ) -> Tensor:
         """One auto-regressive step in normalized space: :math:`x_f` (B, D) from
-        :math:`x_{f-1}` (B, D).
+        :math:`x_{f-1}` (B, D), or from the H frames before it (B, H D), oldest first, for a
+        model with a :attr:`history` of H.
 
         For a denoiser this runs one reverse chain (:attr:`settings`: DDPM over all T levels or
         DDIM over fewer) with ``hook`` on :math:`x_t` (inpainting, RL residuals...); ``t_start``
@@ -329,7 +336,7 @@ class Sampler:
             rule, levels = self.settings.chain(net, self.schedule, t_start)
             delta = net.is_delta
             x, clamp = start_chain(
-                tuple(cond.shape),
+                (cond.shape[0], self.dim),
                 self.schedule,
                 cond=cond,
                 generator=generator,
@@ -373,6 +380,14 @@ class Sampler:
             return net.to_delta(clamp_x0(net.from_delta(z0_hat, cond), bounds), cond)
 
         return [clamp_frame]
+
+
+def history_of(net: nn.Module) -> int:
+    """How many previous frames a next-frame network conditions on: a denoiser's
+    ``config.history``; for the baselines, their condition's size over the frame's."""
+    if isinstance(net, MLPDenoiser):
+        return net.config.history
+    return max(1, int(getattr(getattr(net, "config", net), "cond_dim", 0)) // _x_dim(net))
 
 
 def _from_checkpoint(clip_x0: Any) -> bool:
@@ -432,7 +447,9 @@ def rollout(
         model: a :class:`Sampler`, a loaded :class:`~minimdm.checkpoint.Checkpoint`, a
             checkpoint path, or a bare network (then pass ``schedule`` for a denoiser and
             ``normalizer`` unless ``init_states`` are already normalized).
-        init_states: (C, D) or (D,) initial frames x_0, in feature units (``features.encode``).
+        init_states: (C, D) or (D,) initial frames x_0, in feature units (``features.encode``);
+            for a model with a :attr:`~Sampler.history` of H > 1, (C, H, D) or (H, D): the H
+            recorded frames that end with x_0, oldest first.
         n_frames: frames to generate after each initial state, >= 1.
         n_samples: futures per character; the batch is C * n_samples.
         steps: denoising steps per frame (None: the model's T; fewer: DDIM).
@@ -468,11 +485,19 @@ def rollout(
     check_generator("generator", generator, sampler.device)
     if fast is not None:  # a graph exported from another checkpoint is refused
         _check_fast(fast, sampler)
-    x0, start_pose = _start_states(sampler, init_states, start_pose)
-    C, K = x0.shape[0], n_samples
-    cond = sampler.normalize(x0.to(sampler.device)).repeat_interleave(K, dim=0)  # (C K, D)
+    x0, start_pose = _start_states(sampler, init_states, start_pose)  # (C, D) or (C, H, D)
+    C, K, H = x0.shape[0], n_samples, sampler.history
+    cond = sampler.normalize(x0.to(sampler.device)).repeat_interleave(K, dim=0)  # (C K, [H,] D)
+    past = cond.flatten(1) if H > 1 else None  # the H frames before x_f, (C K, H D)
+    if H > 1:
+        cond = cond[:, -1]  # x_0
 
     def step(f: int, x_prev: Tensor) -> Tensor:  # x_f (C K, D) from x_{f-1}
+        nonlocal past
+        if past is not None:  # x_{f-1} joins the history, the oldest frame leaves
+            if f > 1:
+                past = torch.cat([past[:, x_prev.shape[1] :], x_prev], dim=1)
+            x_prev = past
         return fast(x_prev, generator) if fast is not None else sampler.frame(x_prev, generator)
 
     def who(b: int) -> str:
@@ -504,16 +529,25 @@ def _check_fast(fast: Any, sampler: Sampler) -> None:
 
 def _start_states(sampler: Sampler, init_states: Any, start_pose: Any) -> tuple[Tensor, Any]:
     """The initial frames (C, D), checked against the model, and their start pose."""
-    layout = sampler.layout
+    layout, H = sampler.layout, sampler.history
     init_states, start_pose = start_state(
-        init_states, start_pose, skeleton=sampler.skeleton, layout=layout, name="init_states"
+        init_states,
+        start_pose,
+        skeleton=sampler.skeleton,
+        layout=layout,
+        name="init_states",
+        history=H,
     )
     D = sampler.dim
+    words = f"(C, {D}) or ({D},)" if H == 1 else f"(C, {H}, {D}) or ({H}, {D}) for a history of {H}"
     x0 = check_frames(
         "init_states",
         init_states,
         D,
         joints=layout.joint_names if layout is not None else None,
-        shape_words=f"(C, {D}) or ({D},)",
+        ndim=(1, 2) if H == 1 else (2, 3),
+        shape_words=words,
     )
-    return (x0[None] if x0.dim() == 1 else x0), start_pose
+    if H > 1 and x0.shape[-2] != H:
+        raise InputError(f"init_states must have shape {words}, got {tuple(x0.shape)}")
+    return (x0[None] if x0.dim() == (1 if H == 1 else 2) else x0), start_pose

@@ -295,7 +295,8 @@ class _Data:
     """The training windows of a run and what its losses and checkpoint need to know of them."""
 
     windows: Tensor
-    """(W, N_r + 1, D): every window of N_r + 1 consecutive normalized frames."""
+    """(W, H - 1 + N_r + 1, D): every window of consecutive normalized frames, the H - 1
+    more of a model with a history of H frames first."""
     weights: Tensor | None
     """(W,) sampling weights of the windows (None: uniform)."""
     heldout: Tensor | None
@@ -324,17 +325,18 @@ class _Data:
             contents, clip_names = loaded["contents"], loaded["clip_names"]
             features, heldout = loaded["features"], loaded["heldout"]
             normalizer, skeleton, layout = (loaded[k] for k in ("normalizer", "skeleton", "layout"))
-        windows = make_windows(features, config.rollout).to(device)  # (W, N_r + 1, D)
+        n = config.rollout + config.history - 1  # frames after a window's first
+        windows = make_windows(features, n).to(device)  # (W, n + 1, D)
         weights = None  # None: uniform over windows
         if config.locomotion_share is not None:
             if contents is None:
                 raise InputError("locomotion_share needs the corpus's content labels, not features")
             lengths = [len(f) for f in features]
-            weights = window_weights(lengths, config.rollout, contents, config.locomotion_share)
+            weights = window_weights(lengths, n, contents, config.locomotion_share)
             weights = weights.to(device)
         heldout_windows = None
         if heldout:
-            heldout_windows = make_windows(heldout, config.rollout).to(device)
+            heldout_windows = make_windows(heldout, n).to(device)
         clip_x0 = resolve_clip_x0(config.clip_x0, features)  # 'data': the frames' range
         return cls(
             windows, weights, heldout_windows, clip_x0, normalizer, skeleton, layout, clip_names
@@ -355,6 +357,7 @@ def _loss_kw(config: TrainConfig, data: _Data, device: torch.device) -> dict[str
         kl_beta=config.kl_beta,
         clip_x0=data.clip_x0,
         norm=config.norm,
+        history=config.history,
     )
 
 

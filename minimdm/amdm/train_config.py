@@ -86,6 +86,10 @@ class TrainConfig:
     # ---- scheduled sampling (A-MDM §3.2, MVAE-style)
     rollout: int = 4
     """N_r: frames predicted per window, each conditioned on the previous one."""
+    history: int = 1
+    """How many previous frames condition the next one: 1, the paper's :math:`x_{f-1}`; H > 1
+    gives the network :math:`[x_{f-H}, \\dots, x_{f-1}]` (:attr:`DenoiserConfig.history`), and
+    each training window holds H - 1 more recorded frames before the N_r it predicts."""
     teacher_steps: int = 500
     """Steps of pure teacher forcing (student probability 0)."""
     ramp_steps: int = 500
@@ -208,6 +212,7 @@ class TrainConfig:
         if self.model_kind not in MODEL_KINDS:
             raise ValueError(f"model_kind must be one of {MODEL_KINDS}, got {self.model_kind!r}")
         counts = ("width", "depth", "T", "batch_size", "total_steps", "rollout", "log_interval")
+        counts += ("history",)
         for name in counts + ("eval_windows",):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -330,7 +335,7 @@ def build_network(
             mask = root_mask(x_dim)
         dc = DenoiserConfig(
             x_dim,
-            x_dim,
+            config.history * x_dim,
             config.width,
             config.depth,
             config.time_dim,
@@ -341,11 +346,13 @@ def build_network(
             weights(config.skip_sigma_yaw),
             _checked_delta_scale(config, x_dim, delta_scale),
             _delta_mask(config, x_dim),
+            history=config.history,
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
-        return MLPRegressor(x_dim, x_dim, config.width, config.depth)
-    return MVAE(MVAEConfig(x_dim, x_dim, config.latent_dim, config.width, config.depth))
+        return MLPRegressor(x_dim, config.history * x_dim, config.width, config.depth)
+    cond_dim = config.history * x_dim
+    return MVAE(MVAEConfig(x_dim, cond_dim, config.latent_dim, config.width, config.depth))
 
 
 def delta_scale(windows: Tensor, floor: float = 1e-3) -> list[float]:

@@ -205,12 +205,14 @@ def start_state(
     skeleton: Skeleton | None = None,
     layout: FeatureLayout | None = None,
     name: str = "start",
+    history: int = 1,
 ) -> tuple[Any, StartPose | dict | None]:
     """Resolve what a sampler starts from, and check that it fits the model.
 
     ``start`` is frames in feature units, returned as they are, or a :class:`Clip`: then the
     motion continues the clip, from its last frame (its last encoded row, and its start pose
-    unless ``start_pose`` is given). The skeleton and frame rate the start came from (the
+    unless ``start_pose`` is given); for a model with a ``history`` of H > 1 frames, its last
+    H encoded rows (H, D). The skeleton and frame rate the start came from (the
     clip's, or those a :class:`StartPose` carries) are compared with the model's ``skeleton``
     and ``layout`` (:func:`minimdm.validate.check_skeleton`); what is unknown is not compared.
 
@@ -222,13 +224,14 @@ def start_state(
     """
     given_sk = given_fps = None
     if isinstance(start, Clip):
-        if start.n_frames < 2:
+        if start.n_frames < history + 1:
             raise InputError(
-                f"{name} must be a clip of at least 2 frames (a frame's features need the one "
-                f"before it), got clip {start.name!r} of {start.n_frames}"
+                f"{name} must be a clip of at least {history + 1} frames (a frame's features "
+                f"need the one before it, and the model conditions on {history}), got clip "
+                f"{start.name!r} of {start.n_frames}"
             )
         given_sk, given_fps = start.skeleton, start.fps
-        frames = encode(start)[-1]  # (D,) clip frame F - 1
+        frames = encode(start)[-1] if history == 1 else encode(start)[-history:]  # (D,), (H, D)
         if start_pose is None:
             start_pose = start_pose_of(start, start.n_frames - 1)
     else:

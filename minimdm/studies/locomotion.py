@@ -246,9 +246,12 @@ def _generate(ckpt: Checkpoint, takes: MotionDataset, p: LocomotionProtocol, n_f
         x = torch.stack([clip_trajectory_features(c)[f0 - 1] for c in takes]).float()
         r = rollout_aamdm(model, y, x, n_frames, p.n_samples, gen, start_pose=start)
     else:
-        from minimdm.amdm.sampling import rollout
+        from minimdm.amdm.sampling import history_of, rollout
 
-        init = torch.stack([encode(c)[f0 - 1] for c in takes]).float()  # (C, D)
+        H = history_of(ckpt.model)  # a model that conditions on H frames gets H of them
+        rows = slice(f0 - 1, f0) if H == 1 else slice(f0 - H, f0)
+        init = torch.stack([encode(c)[rows] for c in takes]).float()  # (C, [H,] D)
+        init = init[:, 0] if H == 1 else init
         r = rollout(
             ckpt,
             init,
