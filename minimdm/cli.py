@@ -288,7 +288,7 @@ def _check_kind(ckpt, command: str) -> None:
 def _cmd_sample(args: argparse.Namespace) -> int:
     from minimdm import viz
     from minimdm.amdm import evaluation
-    from minimdm.amdm.sampling import rollout
+    from minimdm.amdm.sampling import history_of, rollout
     from minimdm.checkpoint import load_checkpoint
     from minimdm.files import atomic_output
     from minimdm.motion import bvh, features
@@ -313,7 +313,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     g = torch.Generator(device=device).manual_seed(args.seed)
     roll = rollout(
         ckpt,
-        state.features,
+        state.condition(history_of(ckpt.model)),  # x_0, or the frames that end with it
         args.frames,
         n_samples=args.samples,
         steps=args.steps,

@@ -137,3 +137,15 @@ def test_an_initial_state_gives_a_history_model_the_frames_before_it():
     torch.testing.assert_close(early.condition(4), feats[[0, 0, 0, 1]])
     (state,) = random_states([clip], 1, 10, seed=3)
     torch.testing.assert_close(state.condition(5)[-1], state.features)
+
+
+def test_one_frame_fed_to_a_history_model_is_refused_with_the_reason():
+    """Inpainting, beam search and steering feed the sampler one frame; a history model says
+    what it needs instead of failing inside the network."""
+    net = MLPDenoiser(DenoiserConfig(D, 3 * D, 16, 2, 8, history=3))
+    from minimdm.diffusion import NoiseSchedule
+
+    sampler = Sampler.load(net, schedule=NoiseSchedule("cosine", 4))
+    with pytest.raises(InputError, match=r"conditions on the 3 frames before x_f: .*\(B, 18\)"):
+        sampler.frame(torch.zeros(2, D))
+    assert sampler.frame(torch.zeros(2, 3 * D), torch.Generator()).shape == (2, D)

@@ -331,7 +331,13 @@ class Sampler:
         ``cond``: ``hook`` and ``x_start`` see it (:meth:`chain_target`); the result is the
         frame.
         """
-        net = self.net
+        net, H = self.net, self.history
+        if H > 1 and (cond.dim() != 2 or cond.shape[1] != H * self.dim):
+            raise InputError(
+                f"this model conditions on the {H} frames before x_f: cond must have shape "
+                f"(B, {H * self.dim}), got {tuple(cond.shape)} (techniques that feed one frame "
+                "need a model with history 1)"
+            )
         if isinstance(net, MLPDenoiser):
             rule, levels = self.settings.chain(net, self.schedule, t_start)
             delta = net.is_delta
