@@ -149,3 +149,31 @@ def test_one_frame_fed_to_a_history_model_is_refused_with_the_reason():
     with pytest.raises(InputError, match=r"conditions on the 3 frames before x_f: .*\(B, 18\)"):
         sampler.frame(torch.zeros(2, D))
     assert sampler.frame(torch.zeros(2, 3 * D), torch.Generator()).shape == (2, D)
+
+
+class Seen(MLPDenoiser):
+    """A denoiser that records the condition it is given."""
+
+    def forward(self, x_t, t, cond=None):
+        self.seen = cond.clone()
+        return super().forward(x_t, t, cond)
+
+
+@pytest.mark.parametrize("how", ["each", "shared"])
+def test_shared_condition_noise_offsets_the_whole_past_alike(how):
+    """'shared' noise moves the H frames of a condition by one draw, so the changes between
+    them stay the recorded ones; 'each' noises every frame on its own."""
+    from minimdm.amdm.losses import frame_loss
+    from minimdm.diffusion import NoiseSchedule
+
+    net = Seen(DenoiserConfig(D, 3 * D, 16, 2, 8, "x0", history=3))
+    cond, x = torch.randn(64, 3 * D), torch.randn(64, D)
+    schedule = NoiseSchedule("cosine", 4)
+    g = torch.Generator().manual_seed(0)
+    frame_loss(net, x, cond, g, schedule=schedule, cond_noise=0.5, cond_noise_history=how)
+    noise = (net.seen - cond).unflatten(1, (3, D))  # (B, H, D)
+    assert noise.std() == pytest.approx(0.5, rel=0.15)
+    same = all(torch.allclose(noise[:, 0], noise[:, i], atol=1e-5) for i in (1, 2))
+    assert same == (how == "shared")
+    with pytest.raises(ValueError, match="cond_noise_history must be 'each' or 'shared'"):
+        TrainConfig(cond_noise_history="both")

@@ -150,6 +150,7 @@ def frame_loss(
     cond_noise: float | Tensor = 0.0,
     cond_noise_draw: str = "fixed",
     delta_from: str = "seen",
+    cond_noise_history: str = "each",
 ) -> tuple[Tensor, Tensor]:
     """Per-sample loss of predicting ``x`` (B, D) from ``cond`` (B, D), and the prediction.
 
@@ -178,6 +179,9 @@ def frame_loss(
     network sees, not how the body moved. A delta model's change is measured from the noised
     condition (``delta_from="seen"``: the change also undoes the noise), or from the recorded
     one (``"recorded"``: the change alone; the prediction is then the recorded frame plus it).
+    With a history of H frames, each frame gets its own draw of the noise
+    (``cond_noise_history="each"``) or all H the same (``"shared"``: the whole past offset
+    alike, as a rollout's slow drift moves it, the changes between its frames left clean).
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -194,9 +198,13 @@ def frame_loss(
                 spread = net.delta_spread * cond_noise
             if isinstance(spread, Tensor) and spread.numel() == x.shape[1] < cond.shape[1]:
                 spread = spread.repeat(history)  # each frame of the history alike
-            noise = spread * torch.randn(
-                cond.shape, generator=generator, device=cond.device, dtype=cond.dtype
-            )
+            if cond_noise_history not in ("each", "shared"):
+                raise ValueError(
+                    f"cond_noise_history must be 'each' or 'shared', got {cond_noise_history!r}"
+                )
+            shape = (cond.shape[0], x.shape[1]) if cond_noise_history == "shared" else cond.shape
+            eps = torch.randn(shape, generator=generator, device=cond.device, dtype=cond.dtype)
+            noise = spread * eps.repeat(1, cond.shape[1] // shape[1])  # (B, H D)
             if cond_noise_draw == "uniform":  # each condition's own size, in [0, 1] of it
                 size = torch.rand(cond.shape[0], 1, generator=generator, device=cond.device)
                 noise = noise * size.to(cond.dtype)
@@ -255,6 +263,7 @@ def window_loss(
     cond_noise_draw: str = "fixed",
     delta_from: str = "seen",
     history: int = 1,
+    cond_noise_history: str = "each",
 ) -> tuple[Tensor, dict[str, float]]:
     """Scheduled-sampling loss over windows (B, N_r + 1, D) (A-MDM §3.2).
 
@@ -291,6 +300,7 @@ def window_loss(
     model_kw = dict(kind=kind, schedule=schedule, predicts=predicts, kl_beta=kl_beta)
     loss_kw = dict(norm=norm, geometry=geometry, snr_gamma=snr_gamma, snr_floor=snr_floor)
     loss_kw.update(cond_noise=cond_noise, cond_noise_draw=cond_noise_draw, delta_from=delta_from)
+    loss_kw.update(cond_noise_history=cond_noise_history)
 
     def loss_of(x: Tensor, cond: Tensor) -> tuple[Tensor, Tensor]:
         """Eq. 3 (or the baseline's loss) per sample of frames x after ``cond``, and the

@@ -393,6 +393,7 @@ def _batch_loss(
         snr_floor=config.snr_floor,
         cond_noise=_cond_spread(config, state.model),
         cond_noise_draw=config.cond_noise_draw,
+        cond_noise_history=config.cond_noise_history,
         delta_from=config.delta_from,
         geometry=_geometry(config, windows, data.normalizer, data.skeleton),
     )

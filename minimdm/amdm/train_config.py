@@ -152,6 +152,10 @@ class TrainConfig:
     shows the network the recorded pace, the pose still noised. Chapter 3's tenth round tried
     it on the guess that undoing a noised pace pulls every pace towards the commonest one: it
     kept less of each content's pace, not more."""
+    cond_noise_history: str = "each"
+    """With a ``history`` of H > 1 frames: each frame of the condition gets its own draw of the
+    condition noise ('each'), or all H the same draw ('shared': the past offset as a whole, the
+    changes between its frames clean)."""
     delta_from: str = "seen"
     """From which previous frame a ``delta`` model's change is measured in training, with
     condition noise: 'seen' (the noised condition the network sees, so that the change also
@@ -275,6 +279,10 @@ class TrainConfig:
                 raise ValueError(f"{name} needs model_kind: amdm, got {self.model_kind!r}")
         if not (0 <= self.cond_noise_root <= 1):
             raise ValueError(f"cond_noise_root must be in [0, 1], got {self.cond_noise_root}")
+        if self.cond_noise_history not in ("each", "shared"):
+            raise ValueError(
+                f"cond_noise_history must be 'each' or 'shared', got {self.cond_noise_history!r}"
+            )
         if self.delta_from not in ("seen", "recorded"):
             raise ValueError(f"delta_from must be 'seen' or 'recorded', got {self.delta_from!r}")
         if self.cond_noise_draw not in ("fixed", "uniform"):
