@@ -318,3 +318,25 @@ def test_the_noise_probe_correlates_each_frame_with_the_last_and_keeps_unit_vari
     for x, y in ((a, b), (b, c)):
         r = torch.corrcoef(torch.stack([x.flatten(), y.flatten()]))[0, 1]
         assert abs(r - 0.8) < 0.02 and abs(y.std() - 1) < 0.02
+
+
+def test_one_step_pace_draws_from_the_recorded_frame_before_each_frame(ckpt, monkeypatch):
+    """With a model that repeats its condition, the one-step speed is the recorded speed of the
+    frame before each one: the pace is read on the right frames, per content and for all."""
+    from minimdm.amdm.sampling import Sampler
+    from minimdm.motion.features import encode
+    from minimdm.studies.locomotion import one_step_pace
+
+    monkeypatch.setattr(Sampler, "frame", lambda self, cond, generator=None: cond.clone())
+    pace = one_step_pace(ckpt, "bandai-namco-1", n_samples=2)
+    takes = locomotion_takes("bandai-namco-1")
+    assert list(pace) == list(LOCOMOTION) + ["all"]
+    for content in LOCOMOTION:
+        speeds = [encode(c)[:, :2].norm(dim=-1) for c in takes if c.labels["content"] == content]
+        before = torch.cat([s[:-1] for s in speeds]).double().mean() * 30
+        after = torch.cat([s[1:] for s in speeds]).double().mean() * 30
+        row = pace[content]
+        assert row["one_step_speed"] == pytest.approx(float(before), rel=1e-4)
+        assert row["take_speed"] == pytest.approx(float(after), rel=1e-4)
+        assert row["one_step_ratio"] == pytest.approx(float(before / after), rel=1e-4)
+    assert 0.9 < pace["all"]["one_step_ratio"] < 1.1  # the recording keeps its own pace

@@ -66,6 +66,7 @@ __all__ = [
     "speed_curve",
     "locomotion_report",
     "pace_slope",
+    "one_step_pace",
     "ContentIndex",
     "STUDY_COLUMNS",
     "study_grid",
@@ -267,6 +268,65 @@ def _generate(ckpt: Checkpoint, takes: MotionDataset, p: LocomotionProtocol, n_f
 
 def _ratio(a: float, b: float) -> float:
     return float(a / b) if b > 0 else float("nan")
+
+
+@torch.no_grad()
+def one_step_pace(
+    ckpt: Checkpoint, corpus: str | None = None, n_samples: int = 4, seed: int = 0
+) -> dict[str, dict[str, float]]:
+    """The pace of one step from the recording: does the model speed up or slow down where its
+    condition is recorded, or only where it is its own?
+
+    For every frame of every held-out locomotion take that has ``history`` frames before it,
+    ``n_samples`` next frames are drawn from the recorded frames before it (teacher forcing, no
+    rollout), and the root's ground speed of the draws (``root_vel``, m/s) is compared with the
+    recorded next frame's. Returns, per content and for ``"all"`` takes, ``take_speed`` (the
+    recorded speed), ``one_step_speed`` (the draws') and ``one_step_ratio`` (their quotient).
+    A ratio near 1 with a rollout that runs away (the yardstick's ``speed_ratio_10s``) says the
+    drift comes from the model's own frames, not from a bias it learned on recorded ones.
+    """
+    from minimdm.amdm.sampling import Sampler
+
+    n_samples = int(n_samples)
+    if n_samples < 1:
+        raise InputError(f"n_samples must be >= 1, got {n_samples}")
+    corpus = corpus or ckpt.config.get("corpus")
+    takes = locomotion_takes(corpus)
+    check_corpus_match(ckpt, takes[0], corpus)
+    sampler = Sampler.load(ckpt)
+    H, fps = sampler.history, sampler.fps
+    gen = torch.Generator(device=sampler.device).manual_seed(seed)
+    sums: dict[str, list[float]] = {}
+    for clip in takes:
+        f = encode(clip).float()  # (F, D): row i is clip frame i + 1
+        if len(f) <= H:
+            continue
+        n = sampler.normalize(f.to(sampler.device))
+        cond = torch.stack([n[i - H : i].flatten() for i in range(H, len(f))])  # (N, H D)
+        x = sampler.frame(cond.repeat_interleave(n_samples, 0), gen)  # (N K, D)
+        drawn = sampler.denormalize(x).cpu()[:, :2].norm(dim=-1).sum() / n_samples
+        recorded = f[H:, :2].norm(dim=-1).sum()
+        for key in (clip.labels["content"], "all"):
+            acc = sums.setdefault(key, [0.0, 0.0])
+            acc[0], acc[1] = acc[0] + float(drawn), acc[1] + float(recorded)
+    out = {}
+    for key in [c for c in LOCOMOTION if c in sums] + ["all"]:
+        drawn, recorded = sums[key]
+        out[key] = {
+            "take_speed": recorded * fps / _frames(takes, key, H),
+            "one_step_speed": drawn * fps / _frames(takes, key, H),
+            "one_step_ratio": _ratio(drawn, recorded),
+        }
+    return out
+
+
+def _frames(takes: MotionDataset, content: str, history: int) -> int:
+    """How many frames :func:`one_step_pace` draws for a content ("all": every take)."""
+    return sum(
+        max(0, c.n_frames - 1 - history)
+        for c in takes
+        if content == "all" or c.labels["content"] == content
+    )
 
 
 def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = None) -> dict:
