@@ -163,11 +163,12 @@ def test_resume_gives_the_same_next_step(tmp_path, kind):
         max_size=12,
     ),
     hst.floats(0.05, 1.0),
+    hst.sampled_from(["equal", "frames"]),
 )
-def test_window_weights_give_locomotion_its_share_split_by_content(clips, share):
+def test_window_weights_give_locomotion_its_share_split_by_content(clips, share, split):
     n = 3
     lengths, contents = [f for f, _ in clips], [c for _, c in clips]
-    w = window_weights(lengths, n, contents, share)
+    w = window_weights(lengths, n, contents, share, split)
     counts = [max(0, f - n) for f in lengths]
     assert w.shape == (sum(counts),) and (w >= 0).all()
     if not w.numel():
@@ -181,10 +182,16 @@ def test_window_weights_give_locomotion_its_share_split_by_content(clips, share)
     rest = [c for c in by_content if c not in LOCOMOTION]
     if loco and rest:
         assert sum(by_content[c] for c in loco) == pytest.approx(share)
-    for c in loco:  # equal among the locomotion contents present
-        assert by_content[c] == pytest.approx(by_content[loco[0]])
+    if split == "equal":  # equal among the locomotion contents present
+        for c in loco:
+            assert by_content[c] == pytest.approx(by_content[loco[0]])
+    else:  # every locomotion window alike, so a content counts by its windows
+        moving = [wi for c, wi in zip(label, w.tolist(), strict=True) if c in LOCOMOTION]
+        assert max(moving, default=0) == pytest.approx(min(moving, default=0))
     others = [wi for c, wi in zip(label, w.tolist(), strict=True) if c not in LOCOMOTION]
     assert max(others, default=0) == pytest.approx(min(others, default=0))  # by count
+    with pytest.raises(ValueError, match="split"):
+        window_weights(lengths, n, contents, share, "by-speed")
 
 
 def test_locomotion_share_needs_content_labels(tmp_path):
@@ -192,6 +199,8 @@ def test_locomotion_share_needs_content_labels(tmp_path):
         train_amdm(tiny(locomotion_share=0.8), tmp_path, synthetic_features(), progress=False)
     with pytest.raises(ValueError, match="locomotion_share"):
         tiny(locomotion_share=1.5)
+    with pytest.raises(ValueError, match="locomotion_split"):
+        tiny(locomotion_split="speed")
 
 
 def test_half_storage_keeps_full_precision_for_resume(tmp_path):

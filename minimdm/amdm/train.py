@@ -134,12 +134,19 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
 
 
 def window_weights(
-    lengths: Sequence[int], n: int, contents: Sequence[str | None], share: float
+    lengths: Sequence[int],
+    n: int,
+    contents: Sequence[str | None],
+    share: float,
+    split: str = "equal",
 ) -> Tensor:
     """Sampling weights (W,) of the windows :func:`make_windows` cuts from clips of these
     lengths (F_i - n windows each): locomotion windows get ``share`` in all, split equally
-    among the locomotion contents present; the others get ``1 - share`` by count. The weights
-    sum to 1. With no clip of either kind, the other kind gets everything."""
+    among the locomotion contents present (``split="equal"``) or by count (``"frames"``); the
+    others get ``1 - share`` by count. The weights sum to 1. With no clip of either kind, the
+    other kind gets everything."""
+    if split not in ("equal", "frames"):
+        raise ValueError(f"split must be 'equal' or 'frames', got {split!r}")
     if len(lengths) != len(contents):
         raise ValueError(f"{len(lengths)} clips but {len(contents)} content labels")
     counts = [max(0, int(f) - n) for f in lengths]
@@ -152,7 +159,12 @@ def window_weights(
     for c, k in zip(contents, counts, strict=True):
         if not k:
             continue
-        w = share / len(loco) / per_content[c] if c in LOCOMOTION else (1 - share) / other
+        if c not in LOCOMOTION:
+            w = (1 - share) / other
+        elif split == "equal":
+            w = share / len(loco) / per_content[c]
+        else:
+            w = share / sum(per_content.values())
         parts.append(torch.full((k,), w, dtype=torch.float64))
     return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
 
@@ -332,7 +344,9 @@ class _Data:
             if contents is None:
                 raise InputError("locomotion_share needs the corpus's content labels, not features")
             lengths = [len(f) for f in features]
-            weights = window_weights(lengths, n, contents, config.locomotion_share)
+            weights = window_weights(
+                lengths, n, contents, config.locomotion_share, config.locomotion_split
+            )
             weights = weights.to(device)
         heldout_windows = None
         if heldout:

@@ -180,6 +180,10 @@ class TrainConfig:
     walk-right, run, dash), split equally among those contents; the other takes share the rest
     by length. None: every window equally likely, so a take counts by its length (in
     bandai-namco-1's training takes: 55% locomotion, of which run and dash are 13%)."""
+    locomotion_split: str = "equal"
+    """How ``locomotion_share`` is split among the locomotion contents: 'equal' (each content
+    the same; in bandai-namco-1 that shows a dash window 4x as often as the takes do) or
+    'frames' (by length, as the takes have them, so only locomotion against the rest moves)."""
     storage: str = "float32"
     """Precision of the sampling weights in ``model.safetensors``: 'float32', or 'float16' /
     'bfloat16' (half the bytes; loading restores float32). The training state that resumes a
@@ -260,6 +264,10 @@ class TrainConfig:
         if self.locomotion_share is not None and not 0 < self.locomotion_share <= 1:
             raise ValueError(
                 f"locomotion_share must lie in (0, 1] or be null, got {self.locomotion_share}"
+            )
+        if self.locomotion_split not in ("equal", "frames"):
+            raise ValueError(
+                f"locomotion_split must be 'equal' or 'frames', got {self.locomotion_split!r}"
             )
         if self.storage not in ("float32", "float16", "bfloat16"):
             raise ValueError(
