@@ -177,9 +177,9 @@ class TrainConfig:
     """Append the running training loss to log.jsonl every this many steps."""
     locomotion_share: float | None = None
     """Chance that a training window comes from a locomotion take (walk, walk-back, walk-left,
-    walk-right, run, dash), split equally among those contents; the other takes share the rest
-    by length. None: every window equally likely, so a take counts by its length (in
-    bandai-namco-1's training takes: 55% locomotion, of which run and dash are 13%)."""
+    walk-right, run, dash), split among those contents as ``locomotion_split`` says; the other
+    takes share the rest by length. None: every window equally likely, so a take counts by its
+    length (in bandai-namco-1's training takes: 55% locomotion, of which run and dash are 13%)."""
     locomotion_split: str = "equal"
     """How ``locomotion_share`` is split among the locomotion contents: 'equal' (each content
     the same; in bandai-namco-1 that shows a dash window 4x as often as the takes do) or
