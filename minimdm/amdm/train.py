@@ -155,6 +155,7 @@ def window_weights(
     if not loco or not other:
         share = 1.0 if loco else 0.0
     per_content = {c: sum(k for d, k in zip(contents, counts, strict=True) if d == c) for c in loco}
+    moving = sum(per_content.values())
     parts = []
     for c, k in zip(contents, counts, strict=True):
         if not k:
@@ -164,7 +165,7 @@ def window_weights(
         elif split == "equal":
             w = share / len(loco) / per_content[c]
         else:
-            w = share / sum(per_content.values())
+            w = share / moving
         parts.append(torch.full((k,), w, dtype=torch.float64))
     return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
 
