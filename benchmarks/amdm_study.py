@@ -53,6 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--table1", action="store_true", help="score on Table 1 instead")
     ap.add_argument("--sampling-steps", type=int, default=None, help="denoising steps (DDIM)")
     ap.add_argument("--eta", type=float, default=1.0, help="DDIM stochasticity, with those steps")
+    ap.add_argument(
+        "--cond-level",
+        type=float,
+        default=None,
+        help="the condition noise a model told it (cond_level) assumes at run time",
+    )
     ap.add_argument("--label", default=None, help="the row's name (default: the run's)")
     ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args(argv)
@@ -77,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         changes = {
             k: v for k, v in asdict(config).items() if base.get(k) != v and k != "config_file"
         }
+    if args.cond_level is not None:  # the level a model told its condition's noise assumes
+        if getattr(ckpt.model.config, "cond_level", None) is None:
+            ap.error(f"--cond-level needs a model trained with cond_level; {run} has none")
+        ckpt.model.config.cond_level = args.cond_level
     log = [rec for _, rec in read_log(run / "log.jsonl")]
     heldout = [r["heldout_loss"] for r in log if "heldout_loss" in r]
     head = {
@@ -90,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         "train_wall_this_call": round(train_wall, 1),
         "heldout_loss": heldout[-1] if heldout else None,
         "heldout_loss_min": min(heldout) if heldout else None,
+        "sampling_cond_level": getattr(ckpt.model.config, "cond_level", None),
     }
     if args.table1:
         protocol = evaluation.Protocol()

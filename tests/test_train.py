@@ -789,3 +789,41 @@ def test_motion_condition_noise_reaches_the_root_and_joint_displacements_in_fram
         tiny(model_kind="mse", cond_noise_motion=0.1)
     with pytest.raises(ValueError, match="cond_noise_motion must be a finite float"):
         tiny(cond_noise_motion=float("nan"))
+
+
+def test_a_model_told_its_condition_noise_reads_each_drawn_size():
+    """With cond_level the denoiser is told each training condition's drawn noise size (the
+    uniform factor), and at run time the configured level; without it, no level is accepted."""
+    from minimdm.amdm.losses import frame_loss
+
+    class Told(MLPDenoiser):
+        def forward(self, x_t, t, cond, level=None):
+            self.seen = (cond.clone(), None if level is None else level.clone())
+            return super().forward(x_t, t, cond, level)
+
+    net = Told(DenoiserConfig(D, D, 32, 3, predicts="x0", cond_level=0.25))
+    x, cond = torch.randn(512, D), torch.randn(512, D)
+    sched = NoiseSchedule("cosine", 8)
+    g = torch.Generator().manual_seed(0)
+    frame_loss(net, x, cond, g, "amdm", sched, "x0", cond_noise=0.5, cond_noise_draw="uniform")
+    seen, level = net.seen
+    assert level.shape == (512,) and ((level >= 0) & (level <= 1)).all()
+    # each condition's noise has the spread 0.5 times the level it was told
+    sq = (seen - cond).pow(2)
+    assert abs(float((sq.sum() / (D * level.pow(2).sum())).sqrt()) - 0.5) < 0.03
+    per_row = sq.mean(1).sqrt()
+    assert torch.corrcoef(torch.stack([per_row, level]))[0, 1] > 0.8
+    # at run time the configured level; another level gives another output
+    x_t, t = torch.randn(3, D), torch.zeros(3, dtype=torch.long)
+    out = net(x_t, t, cond[:3])
+    torch.testing.assert_close(out, net(x_t, t, cond[:3], torch.full((3,), 0.25)))
+    assert not torch.allclose(out, net(x_t, t, cond[:3], torch.ones(3)))
+    plain = MLPDenoiser(DenoiserConfig(D, D, 32, 3))
+    with pytest.raises(ValueError, match="level needs a model told"):
+        plain(x_t, t, cond[:3], torch.ones(3))
+    with pytest.raises(ValueError, match=r"cond_level must be in \[0, 1\]"):
+        MLPDenoiser(DenoiserConfig(D, D, 32, 3, cond_level=1.5))
+    with pytest.raises(ValueError, match="cond_level needs model_kind 'amdm' and cond_noise_draw"):
+        tiny(cond_noise=0.5, cond_level=0.2)  # a fixed draw tells the model nothing
+    with pytest.raises(ValueError, match=r"cond_level must be in \[0, 1\] or null"):
+        tiny(cond_noise=0.5, cond_noise_draw="uniform", cond_level=-0.1)

@@ -8,6 +8,7 @@ them in its loop.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -174,14 +175,15 @@ def frame_loss(
     and this teaches it to lead them back to the data. A tensor (D,) gives each feature's own
     spread, in normalized frame units for every model (:func:`~minimdm.amdm.train` builds it
     from ``TrainConfig.cond_noise`` and ``cond_noise_motion``). ``cond_noise_draw="uniform"``
-    scales each sample's noise by a factor drawn uniformly in [0, 1]. The ``geometry`` losses
-    read the displacement from the recorded ``cond``, not the noised one: the noise is what the
-    network sees, not how the body moved. A delta model's change is measured from the noised
-    condition (``delta_from="seen"``: the change also undoes the noise), or from the recorded
-    one (``"recorded"``: the change alone; the prediction is then the recorded frame plus it).
-    With a history of H frames, each frame gets its own draw of the noise
-    (``cond_noise_history="each"``) or all H the same (``"shared"``: the whole past offset
-    alike, as a rollout's slow drift moves it, the changes between its frames left clean).
+    scales each sample's noise by a factor drawn uniformly in [0, 1], which a network with a
+    ``cond_level`` is told. The ``geometry`` losses read the displacement from the recorded
+    ``cond``, not the noised one: the noise is what the network sees, not how the body moved. A
+    delta model's change is measured from the noised condition (``delta_from="seen"``: the
+    change also undoes the noise), or from the recorded one (``"recorded"``: the change alone;
+    the prediction is then the recorded frame plus it). With a history of H frames, each frame
+    gets its own draw of the noise (``cond_noise_history="each"``) or all H the same
+    (``"shared"``: the whole past offset alike, as a rollout's slow drift moves it, the changes
+    between its frames left clean).
 
     Returns ``(loss (B,), prediction (B, D))``.
     """
@@ -208,6 +210,9 @@ def frame_loss(
             if cond_noise_draw == "uniform":  # each condition's own size, in [0, 1] of it
                 size = torch.rand(cond.shape[0], 1, generator=generator, device=cond.device)
                 noise = noise * size.to(cond.dtype)
+                told = getattr(getattr(net, "config", None), "cond_level", None) is not None
+                if told:  # the network reads each condition's size (DenoiserConfig.cond_level)
+                    model = functools.partial(model, level=size[:, 0])
             cond = cond + noise
 
         if delta_from not in ("seen", "recorded"):

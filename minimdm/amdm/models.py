@@ -87,6 +87,13 @@ class DenoiserConfig:
     """How many previous frames the condition holds: 1, the paper's :math:`x_{f-1}`; H > 1,
     :math:`[x_{f-H}, \\dots, x_{f-1}]` flattened, oldest first (``cond_dim = H x_dim``). A
     delta model's change is still measured from :math:`x_{f-1}`, the last of them."""
+    cond_level: float | None = None
+    """None: the network is not told how noisy its condition is. A level s in [0, 1]: the
+    network takes one more input, the size of its condition's noise as a fraction of the
+    largest trained (conditioning augmentation told to the model, as in Ho et al. 2022's
+    cascaded diffusion models and Chen et al. 2024's diffusion forcing). Training tells it each
+    condition's own drawn size; at run time it is told s, the noise it assumes of its own
+    frames: 0, that they are recorded; 1, that they are as far off as the most noised."""
 
 
 def skip_weights(alphas_cumprod: Tensor, sigma: float) -> list[float]:
@@ -130,7 +137,10 @@ class MLPDenoiser(MLP):
             raise ValueError(f"predicts must be one of {PREDICTS}, got {config.predicts!r}")
         w, w0 = config.width, config.x_dim
         time_mlp = MLP(config.time_dim, w, w, depth=2, norm=False).sequential()  # e^t -> (B, W)
-        super().__init__(config.x_dim + config.cond_dim, config.x_dim, w, config.depth)
+        level = 0 if config.cond_level is None else 1  # the level's one input
+        if config.cond_level is not None and not 0 <= config.cond_level <= 1:
+            raise ValueError(f"cond_level must be in [0, 1] or None, got {config.cond_level}")
+        super().__init__(config.x_dim + config.cond_dim + level, config.x_dim, w, config.depth)
         self.time_mlp = time_mlp
         self.config = config
         self.predicts = config.predicts
@@ -199,7 +209,12 @@ class MLPDenoiser(MLP):
         """The previous frame :math:`x_{f-1}` (B, D) of a condition (B, history D)."""
         return cond if self.config.history == 1 else cond[..., -self.config.x_dim :]
 
-    def forward(self, x_t: Tensor, t: Tensor, cond: Tensor | None = None) -> Tensor:
+    def forward(
+        self, x_t: Tensor, t: Tensor, cond: Tensor | None = None, level: Tensor | None = None
+    ) -> Tensor:
+        """The output for ``x_t`` (B, D) at steps ``t`` (B,) after ``cond`` (B, C). A model
+        told its condition's noise (:attr:`DenoiserConfig.cond_level`) reads ``level`` (B,),
+        each condition's size of noise in [0, 1]; None: the configured ``cond_level``."""
         c = self.config
         if x_t.dim() != 2 or x_t.shape[1] != c.x_dim:
             raise ValueError(f"x_t must have shape (B, {c.x_dim}), got {tuple(x_t.shape)}")
@@ -210,6 +225,12 @@ class MLPDenoiser(MLP):
             h = torch.cat([x_t, cond], dim=-1)  # (B, D + C)
         else:
             h = x_t
+        if c.cond_level is not None:  # the condition's noise level, one more input
+            if level is None:
+                level = h.new_full((h.shape[0],), c.cond_level)
+            h = torch.cat([h, level.to(h.dtype).reshape(-1, 1)], dim=-1)
+        elif level is not None:
+            raise ValueError("level needs a model told its condition's noise (cond_level)")
         e = self.time_mlp(timestep_embedding(t, c.time_dim))  # (B, W)
         out = super().forward(h, add=e)  # (B, D)
         if self.skip.numel():

@@ -152,6 +152,13 @@ class TrainConfig:
     shows the network the recorded pace, the pose still noised. Chapter 3's tenth round tried
     it on the guess that undoing a noised pace pulls every pace towards the commonest one: it
     kept less of each content's pace, not more."""
+    cond_level: float | None = None
+    """None: the network is not told how noisy its condition is. A level s in [0, 1] (needs
+    ``cond_noise_draw: uniform``): the network also reads each training condition's drawn
+    factor, and at run time s (:attr:`~minimdm.amdm.models.DenoiserConfig.cond_level`), so
+    that it learns to undo large departures without assuming every condition is that far off.
+    Chapter 3's thirteenth round tries it against the pull of the condition noise towards the
+    commonest gait (amdm only)."""
     cond_noise_history: str = "each"
     """With a ``history`` of H > 1 frames: each frame of the condition gets its own draw of the
     condition noise ('each'), or all H the same draw ('shared': the past offset as a whole, the
@@ -293,6 +300,14 @@ class TrainConfig:
             )
         if self.delta_from not in ("seen", "recorded"):
             raise ValueError(f"delta_from must be 'seen' or 'recorded', got {self.delta_from!r}")
+        if self.cond_level is not None:
+            if not 0 <= self.cond_level <= 1:
+                raise ValueError(f"cond_level must be in [0, 1] or null, got {self.cond_level}")
+            if self.cond_noise_draw != "uniform" or self.model_kind != "amdm":
+                raise ValueError(
+                    "cond_level needs model_kind 'amdm' and cond_noise_draw 'uniform' (the levels "
+                    f"it is told), got {self.model_kind!r} and {self.cond_noise_draw!r}"
+                )
         if self.cond_noise_draw not in ("fixed", "uniform"):
             raise ValueError(
                 f"cond_noise_draw must be 'fixed' or 'uniform', got {self.cond_noise_draw!r}"
@@ -363,6 +378,7 @@ def build_network(
             _checked_delta_scale(config, x_dim, delta_scale),
             _delta_mask(config, x_dim),
             history=config.history,
+            cond_level=config.cond_level,
         )
         return MLPDenoiser(dc)
     if config.model_kind == "mse":
