@@ -68,6 +68,11 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
         assert r["content_10s"] <= r["locomotion_10s"]  # its own content is locomotion
         assert r["locomotion_data"] > 0.8  # the takes themselves look like locomotion
     assert all_["locomotion_data"] > 0.95 and 0.5 < all_["content_data"] < 1.0
+    for when in ("10s", "60s"):  # the futures' distance off the data over the takes' own
+        assert all_[f"off_data_{when}"] == pytest.approx(
+            all_[f"pose_dist_{when}"] / all_["pose_dist_data"]
+        )
+        assert all(r[f"pose_dist_{when}"] > 0 for r in rep["takes"])
 
 
 def test_the_content_index_names_the_content_of_the_nearest_training_frame():
@@ -340,3 +345,24 @@ def test_one_step_pace_draws_from_the_recorded_frame_before_each_frame(ckpt, mon
         assert row["take_speed"] == pytest.approx(float(after), rel=1e-4)
         assert row["one_step_ratio"] == pytest.approx(float(before / after), rel=1e-4)
     assert 0.9 < pace["all"]["one_step_ratio"] < 1.1  # the recording keeps its own pace
+
+
+def test_off_the_data_is_the_distance_to_the_nearest_training_frame_over_the_takes():
+    """A training frame is at distance 0 from the index; a frame moved off it by one spread in
+    every feature is at most 1 away (the distance is the RMS over features, in spreads); the
+    held-out takes' own frames sit close but not on it."""
+    from minimdm.motion.corpora import load_motion
+    from minimdm.motion.features import encode
+    from minimdm.studies.locomotion import ContentIndex
+
+    index = ContentIndex("bandai-namco-1")
+    train = {c.name: c for c in load_motion("bandai-namco-1", split="train")}
+    walk = encode(train["dataset-1_walk_normal_002"])[::10]
+    labels, dist = index.nearest(walk)
+    assert torch.equal(labels, index.classify(walk)) and dist.shape == labels.shape
+    assert dist.max() < 1e-3
+    _, moved = index.nearest(walk + index.std)  # one spread off in every feature
+    assert (moved > 0.2).all() and (moved <= 1.0 + 1e-4).all()
+    held_out = encode(load_motion("bandai-namco-1", split="test")[0])
+    _, own = index.nearest(held_out)
+    assert 0 < float(own.mean()) < float(moved.mean())

@@ -25,6 +25,11 @@ rollout started from, the recording of the same actor and content:
   locomotion take, and to a take of the start's own content, beside the same shares of the
   take's own frames. A future that leaves a walk for the corpus's gestures (arms raised,
   crouches, kicks) can keep its speed and still fail here;
+* **off the data** after 10 s and 60 s: the mean distance of the tail's frames to their
+  nearest training frame (every feature in its spread), over the same distance of the take's
+  own frames. Near 1, the futures' poses and motions are as close to the recordings as an
+  unseen take is; a future that bends over at a run or raises its arms mid-stride, poses no
+  actor held, scores far above 1 even where its speed, feet and bones look right;
 * **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
   repeats one future scores low);
 * **at the box** after 60 s, for a denoiser that clamps its frames (``clip_x0``): the share of
@@ -207,11 +212,20 @@ class ContentIndex:
         self.frames = (x - self.mean) / self.std  # (N, D)
         self.labels = torch.cat(labels)  # (N,)
 
+    def nearest(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """The content index (...,) of frames ``features`` (..., D) in feature units, and their
+        distance (...,) to that nearest training frame, as the root mean square over the
+        features of the difference in spreads: 0 for a training frame itself."""
+        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
+        found = [torch.cdist(chunk, self.frames).min(1) for chunk in flat.split(1024)]
+        where = torch.cat([f.indices for f in found])
+        dist = torch.cat([f.values for f in found]) / self.frames.shape[1] ** 0.5
+        shape = features.shape[:-1]
+        return self.labels[where].reshape(shape), dist.reshape(shape)
+
     def classify(self, features: Tensor) -> Tensor:
         """The content index (..., ) of frames ``features`` (..., D) in feature units."""
-        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
-        near = [torch.cdist(chunk, self.frames).argmin(1) for chunk in flat.split(1024)]
-        return self.labels[torch.cat(near)].reshape(features.shape[:-1])
+        return self.nearest(features)[0]
 
 
 _INDEXES: dict[str, ContentIndex] = {}
@@ -394,10 +408,13 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             "Jnt.Accel_data": ref["Jnt.Accel"],
             "Bone.Err": metrics.bone_length_error(short_pos, sk.parents, ref["bones"]),
         }
-        on_loco, kept = _shares(index.classify(f_i[:, n_short - tail : n_short]), own)
-        data_loco, data_kept = _shares(index.classify(encode(clip)), own)
+        labels, dist = index.nearest(f_i[:, n_short - tail : n_short])
+        data_labels, data_dist = index.nearest(encode(clip))
+        on_loco, kept = _shares(labels, own)
+        data_loco, data_kept = _shares(data_labels, own)
         row |= {"locomotion_10s": on_loco, "locomotion_data": data_loco}
         row |= {"content_10s": kept, "content_data": data_kept}
+        row |= {"pose_dist_10s": float(dist.mean()), "pose_dist_data": float(data_dist.mean())}
         if p.n_samples > 1:  # how far the futures spread over the paper's 150 frames (5 s)
             row["APD"] = metrics.apd(x_i[:, : min(150, n_short)])
         if n_frames > n_short:
@@ -407,7 +424,9 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             row["along_ratio_60s"] = _ratio(float(tail_mean(along, n_frames).mean()), ref["speed"])
             row["moving_60s"] = float((s60 >= p.moving_ratio * ref["speed"]).double().mean())
             row["Bone.Err_60s"] = metrics.bone_length_error(x_i, sk.parents, ref["bones"])
-            row["locomotion_60s"] = _shares(index.classify(f_i[:, n_frames - tail :]), own)[0]
+            labels, dist = index.nearest(f_i[:, n_frames - tail :])
+            row["locomotion_60s"] = _shares(labels, own)[0]
+            row["pose_dist_60s"] = float(dist.mean())
             if on_box is not None:
                 row["at_box_60s"] = float(on_box[i])
         rows.append(row)
@@ -451,8 +470,10 @@ def _pool(rows: list[dict]) -> dict[str, float]:
     out["worst_speed_ratio_10s"] = float(min(r["speed_ratio_10s"] for r in rows))
     out["FS_ratio"] = _ratio(out["FS"], out["FS_data"])
     out["Jnt.Accel_ratio"] = _ratio(out["Jnt.Accel"], out["Jnt.Accel_data"])
+    out["off_data_10s"] = _ratio(out["pose_dist_10s"], out["pose_dist_data"])
     if "speed_ratio_60s" in rows[0]:
         out["worst_speed_ratio_60s"] = float(min(r["speed_ratio_60s"] for r in rows))
+        out["off_data_60s"] = _ratio(out["pose_dist_60s"], out["pose_dist_data"])
     return out
 
 
@@ -489,6 +510,8 @@ STUDY_COLUMNS = {
     "on loco 10 s": "locomotion_10s",
     "on loco 60 s": "locomotion_60s",
     "content kept": "content_10s",
+    "off data 10 s": "off_data_10s",
+    "off data 60 s": "off_data_60s",
 }
 """The study grid's columns (header: key of a yardstick record's ``all`` pool)."""
 
