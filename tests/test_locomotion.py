@@ -73,6 +73,11 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
             all_[f"pose_dist_{when}"] / all_["pose_dist_data"]
         )
         assert all(r[f"pose_dist_{when}"] > 0 for r in rep["takes"])
+    groups = ("root", "positions", "velocities", "rotations")
+    for g in groups:
+        assert all_[f"off_data_10s_{g}"] == pytest.approx(
+            all_[f"pose_dist_10s_{g}"] / all_[f"pose_dist_data_{g}"]
+        )
 
 
 def test_the_content_index_names_the_content_of_the_nearest_training_frame():
@@ -366,3 +371,13 @@ def test_off_the_data_is_the_distance_to_the_nearest_training_frame_over_the_tak
     held_out = encode(load_motion("bandai-namco-1", split="test")[0])
     _, own = index.nearest(held_out)
     assert 0 < float(own.mean()) < float(moved.mean())
+    labels, gap = index.gaps(walk + index.std)  # the difference from the nearest frame
+    assert gap.shape == walk.shape
+    torch.testing.assert_close(gap.pow(2).mean(-1).sqrt(), moved)
+    from minimdm.motion.features import FeatureLayout
+    from minimdm.studies.locomotion import _feature_groups
+
+    names = train["dataset-1_walk_normal_002"].skeleton.names
+    groups = _feature_groups(FeatureLayout(tuple(names)))
+    cover = sorted(i for cols in groups.values() for i in range(walk.shape[1])[cols])
+    assert cover == list(range(walk.shape[1]))  # the groups split the features, once each

@@ -29,7 +29,9 @@ rollout started from, the recording of the same actor and content:
   nearest training frame (every feature in its spread), over the same distance of the take's
   own frames. Near 1, the futures' poses and motions are as close to the recordings as an
   unseen take is; a future that bends over at a run or raises its arms mid-stride, poses no
-  actor held, scores far above 1 even where its speed, feet and bones look right;
+  actor held, scores far above 1 even where its speed, feet and bones look right. After 10 s
+  it is also given for the root's motion, the joint positions, their velocities and their
+  rotations alone, which tells what leaves the data first;
 * **APD** of the futures over their first 5 s (the paper's diversity; a model that halts or
   repeats one future scores low);
 * **at the box** after 60 s, for a denoiser that clamps its frames (``clip_x0``): the share of
@@ -212,20 +214,41 @@ class ContentIndex:
         self.frames = (x - self.mean) / self.std  # (N, D)
         self.labels = torch.cat(labels)  # (N,)
 
-    def nearest(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        """The content index (...,) of frames ``features`` (..., D) in feature units, and their
-        distance (...,) to that nearest training frame, as the root mean square over the
-        features of the difference in spreads: 0 for a training frame itself."""
+    def gaps(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """The content index (...,) of frames ``features`` (..., D) in feature units, and
+        their difference (..., D) from that nearest training frame, each feature in its spread:
+        0 for a training frame itself."""
         flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
-        found = [torch.cdist(chunk, self.frames).min(1) for chunk in flat.split(1024)]
-        where = torch.cat([f.indices for f in found])
-        dist = torch.cat([f.values for f in found]) / self.frames.shape[1] ** 0.5
-        shape = features.shape[:-1]
-        return self.labels[where].reshape(shape), dist.reshape(shape)
+        where = torch.cat([torch.cdist(c, self.frames).argmin(1) for c in flat.split(1024)])
+        gap = flat - self.frames[where]
+        return self.labels[where].reshape(features.shape[:-1]), gap.reshape(features.shape)
+
+    def nearest(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """The content index (...,) of frames ``features`` (..., D) and their distance (...,)
+        to that nearest training frame: the root mean square of :meth:`gaps` over the
+        features."""
+        labels, gap = self.gaps(features)
+        return labels, _rms(gap)
 
     def classify(self, features: Tensor) -> Tensor:
         """The content index (..., ) of frames ``features`` (..., D) in feature units."""
         return self.nearest(features)[0]
+
+
+def _rms(gap: Tensor) -> Tensor:
+    """The root mean square (...,) over the last dimension."""
+    return gap.pow(2).mean(-1).sqrt()
+
+
+def _feature_groups(layout: FeatureLayout) -> dict[str, slice]:
+    """The feature groups whose distance off the data the yardstick reports one by one."""
+    root = slice(layout.root_vel.start, layout.yaw_rate.stop)
+    return {
+        "root": root,
+        "positions": layout.joint_pos,
+        "velocities": layout.joint_vel,
+        "rotations": layout.joint_rot,
+    }
 
 
 _INDEXES: dict[str, ContentIndex] = {}
@@ -378,6 +401,7 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
     gen_seconds = time.perf_counter() - t0
     second = round(fps)
     index = _content_index(corpus)
+    groups = _feature_groups(layout)
     rows = []
     for i, clip in enumerate(takes):
         ref = take_reference(clip, offset)
@@ -408,13 +432,19 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             "Jnt.Accel_data": ref["Jnt.Accel"],
             "Bone.Err": metrics.bone_length_error(short_pos, sk.parents, ref["bones"]),
         }
-        labels, dist = index.nearest(f_i[:, n_short - tail : n_short])
-        data_labels, data_dist = index.nearest(encode(clip))
+        labels, gap = index.gaps(f_i[:, n_short - tail : n_short])
+        data_labels, data_gap = index.gaps(encode(clip))
         on_loco, kept = _shares(labels, own)
         data_loco, data_kept = _shares(data_labels, own)
         row |= {"locomotion_10s": on_loco, "locomotion_data": data_loco}
         row |= {"content_10s": kept, "content_data": data_kept}
-        row |= {"pose_dist_10s": float(dist.mean()), "pose_dist_data": float(data_dist.mean())}
+        row |= {
+            "pose_dist_10s": float(_rms(gap).mean()),
+            "pose_dist_data": float(_rms(data_gap).mean()),
+        }
+        for name, cols in groups.items():  # which features leave the data
+            row[f"pose_dist_10s_{name}"] = float(_rms(gap[..., cols]).mean())
+            row[f"pose_dist_data_{name}"] = float(_rms(data_gap[..., cols]).mean())
         if p.n_samples > 1:  # how far the futures spread over the paper's 150 frames (5 s)
             row["APD"] = metrics.apd(x_i[:, : min(150, n_short)])
         if n_frames > n_short:
@@ -471,6 +501,9 @@ def _pool(rows: list[dict]) -> dict[str, float]:
     out["FS_ratio"] = _ratio(out["FS"], out["FS_data"])
     out["Jnt.Accel_ratio"] = _ratio(out["Jnt.Accel"], out["Jnt.Accel_data"])
     out["off_data_10s"] = _ratio(out["pose_dist_10s"], out["pose_dist_data"])
+    for key in [k for k in out if k.startswith("pose_dist_10s_")]:
+        name = key.removeprefix("pose_dist_10s_")
+        out[f"off_data_10s_{name}"] = _ratio(out[key], out[f"pose_dist_data_{name}"])
     if "speed_ratio_60s" in rows[0]:
         out["worst_speed_ratio_60s"] = float(min(r["speed_ratio_60s"] for r in rows))
         out["off_data_60s"] = _ratio(out["pose_dist_60s"], out["pose_dist_data"])
@@ -512,6 +545,10 @@ STUDY_COLUMNS = {
     "content kept": "content_10s",
     "off data 10 s": "off_data_10s",
     "off data 60 s": "off_data_60s",
+    "off root 10 s": "off_data_10s_root",
+    "off pos 10 s": "off_data_10s_positions",
+    "off vel 10 s": "off_data_10s_velocities",
+    "off rot 10 s": "off_data_10s_rotations",
 }
 """The study grid's columns (header: key of a yardstick record's ``all`` pool)."""
 
