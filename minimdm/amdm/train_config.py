@@ -157,8 +157,9 @@ class TrainConfig:
     ``cond_noise_draw: uniform``): the network also reads each training condition's drawn
     factor, and at run time s (:attr:`~minimdm.amdm.models.DenoiserConfig.cond_level`), so
     that it learns to undo large departures without assuming every condition is that far off.
-    Chapter 3's thirteenth round tries it against the pull of the condition noise towards the
-    commonest gait (amdm only)."""
+    Chapter 3's thirteenth round tried it against the pull of the condition noise towards the
+    commonest gait: a change model told any level from 0 to 1 kept its gait no better (amdm
+    only)."""
     cond_noise_history: str = "each"
     """With a ``history`` of H > 1 frames: each frame of the condition gets its own draw of the
     condition noise ('each'), or all H the same draw ('shared': the past offset as a whole, the
