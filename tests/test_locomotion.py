@@ -68,6 +68,12 @@ def test_the_report_covers_every_held_out_locomotion_take(ckpt):
         assert r["content_10s"] <= r["locomotion_10s"]  # its own content is locomotion
         assert r["locomotion_data"] > 0.8  # the takes themselves look like locomotion
     assert all_["locomotion_data"] > 0.95 and 0.5 < all_["content_data"] < 1.0
+    for r in rep["takes"]:  # whom the futures and the take resemble
+        for when in ("10s", "60s", "data"):
+            assert 0.0 <= r[f"style_{when}"] <= 1.0 and r[f"resembled_pace_{when}"] > 0
+        # a held-out take moves at about the pace of the training takes its frames are nearest
+        assert 0.5 < r["pace_vs_poses_data"] < 2.0
+        assert r["pace_vs_poses_data"] == pytest.approx(r["take_speed"] / r["resembled_pace_data"])
     for when in ("10s", "60s"):  # the futures' distance off the data over the takes' own
         assert all_[f"off_data_{when}"] == pytest.approx(
             all_[f"pose_dist_{when}"] / all_["pose_dist_data"]
@@ -99,6 +105,32 @@ def test_the_content_index_names_the_content_of_the_nearest_training_frame():
     a, b = walk[20], bow[20]
     on_the_way = torch.stack([a + w * (b - a) for w in (0.02, 0.98)])
     assert index.classify(on_the_way).tolist() == [LOCOMOTION.index("walk"), -1]
+
+
+def test_the_content_index_knows_the_take_of_each_frame_with_its_pace_and_style():
+    """A training take's frames find their own take; its recorded pace is its mean ground speed;
+    futures read against it score their speed over that pace and their share on its style."""
+    from minimdm.motion.corpora import load_motion
+    from minimdm.motion.features import encode
+    from minimdm.studies.locomotion import ContentIndex, _resembled
+
+    index = ContentIndex("bandai-namco-1")
+    train = load_motion("bandai-namco-1", split="train")
+    t = list(train.names).index("dataset-1_walk_sad_002")
+    clip = train[t]
+    feats = encode(clip)
+    assert index.takes(feats[::10]).eq(t).all()
+    speed = feats[:, 0:2].norm(dim=-1) * clip.fps
+    assert float(index.take_pace[t]) == pytest.approx(float(speed.mean()), rel=1e-5)
+    assert index.take_style[t] == "sad" and len(index.take_pace) == len(train)
+    run = list(train.names).index("dataset-1_run_proud_001")
+    near = torch.tensor([[t, t], [t, run]])  # two futures: a sad walk; half of it a proud run
+    out = _resembled(index, near, torch.tensor([0.4, 1.0]), "sad", "10s")
+    paces = index.take_pace
+    assert out["resembled_pace_10s"] == pytest.approx(float(0.75 * paces[t] + 0.25 * paces[run]))
+    expect = (0.4 / float(paces[t]) + 1.0 / float((paces[t] + paces[run]) / 2)) / 2
+    assert out["pace_vs_poses_10s"] == pytest.approx(expect)
+    assert out["style_10s"] == pytest.approx(0.75)  # 3 of the 4 frames are on a sad take
 
 
 def test_the_held_in_diagnostic_starts_from_the_training_takes_long_enough(ckpt):
@@ -278,6 +310,9 @@ def test_the_yardstick_table_pools_one_tag_per_content_and_model(tmp_path):
     assert list(table) == ["walk, A-MDM", "all, A-MDM"]
     assert table["walk, A-MDM"]["speed 10 s"] == pytest.approx((0.6, 0.1))
     assert table["walk, A-MDM"]["seeds"] == 2 and table["all, A-MDM"]["seeds"] == 1
+    mine = yardstick_table(path, "new", {"A-MDM": "m"}, ("walk",), {"pace": "speed_ratio_10s"})
+    assert list(mine["walk, A-MDM"]) == ["pace", "seeds"]  # chosen columns, in order
+    assert mine["walk, A-MDM"]["pace"] == pytest.approx((0.6, 0.1))
     with pytest.raises(ValueError, match="no 'new' row of m for 'run'"):
         yardstick_table(path, "new", {"A-MDM": "m"}, contents=("run",))
 

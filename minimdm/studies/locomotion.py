@@ -25,6 +25,12 @@ rollout started from, the recording of the same actor and content:
   locomotion take, and to a take of the start's own content, beside the same shares of the
   take's own frames. A future that leaves a walk for the corpus's gestures (arms raised,
   crouches, kicks) can keep its speed and still fail here;
+* **whom it resembles** (:meth:`ContentIndex.takes`): over the same tails, the share of frames
+  whose nearest training frame belongs to a take of the start's own **style** (the data's own
+  frames beside it), the mean pace of those nearest takes, and the futures' speed over that
+  pace. A future that slows because it has become a slower take (a sad walk, a gesture) moves
+  at about the pace of the takes it resembles (near 1); one that glides at a run in a walk's
+  poses scores far above 1;
 * **off the data** after 10 s and 60 s: the mean distance of the tail's frames to their
   nearest training frame (every feature in its spread), over the same distance of the take's
   own frames. Near 1, the futures' poses and motions are as close to the recordings as an
@@ -194,11 +200,15 @@ class ContentIndex:
     the take is not locomotion (a gesture, a dance, a fall). On the held-out locomotion takes
     of bandai-namco-1 about 98% of the frames find a locomotion take, and two in three their
     own content: a run is often nearest a dash, a sidestep nearest a walk.
+
+    Every frame also knows its take (:meth:`takes`): ``take_pace`` (T,) is each training take's
+    mean ground speed in m/s and ``take_style`` (T,) its ``style`` label, so that a future's
+    frames can be read as "it looks like take t", and its speed compared with that take's.
     """
 
     def __init__(self, corpus: str, split: str = "train") -> None:
-        frames, labels = [], []
-        for clip in load_motion(corpus, split=split):
+        frames, labels, takes, pace, styles = [], [], [], [], []
+        for t, clip in enumerate(load_motion(corpus, split=split)):
             feats = encode(clip).float()  # (F - 1, D)
             content = clip.labels.get("content")
             frames.append(feats)
@@ -207,21 +217,48 @@ class ContentIndex:
                     (len(feats),), LOCOMOTION.index(content) if content in LOCOMOTION else -1
                 )
             )
+            takes.append(torch.full((len(feats),), t))
+            pace.append(float((feats[:, 0:2].double().norm(dim=-1) * clip.fps).mean()))
+            styles.append(clip.labels.get("style"))
         if not frames:
             raise InputError(f"corpus {corpus!r} ({split} split) holds no takes")
         x = torch.cat(frames)
         self.mean, self.std = x.mean(0), x.std(0).clamp_min(1e-6)
         self.frames = (x - self.mean) / self.std  # (N, D)
         self.labels = torch.cat(labels)  # (N,)
+        self.take = torch.cat(takes)  # (N,) the take of each frame
+        self.take_pace = torch.tensor(pace, dtype=torch.float64)  # (T,) m/s
+        self.take_style = styles  # (T,)
+
+    def _match(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """The row (M,) of the nearest training frame of each of ``features`` (..., D), and
+        the frames (M, D) in spreads."""
+        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
+        where = torch.cat([torch.cdist(c, self.frames).argmin(1) for c in flat.split(1024)])
+        return where, flat
 
     def gaps(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """The content index (...,) of frames ``features`` (..., D) in feature units, and
         their difference (..., D) from that nearest training frame, each feature in its spread:
         0 for a training frame itself."""
-        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
-        where = torch.cat([torch.cdist(c, self.frames).argmin(1) for c in flat.split(1024)])
+        labels, _, gap = self.read(features)
+        return labels, gap
+
+    def read(self, features: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """What :meth:`gaps` gives, with the take (...,) of each nearest training frame in
+        between: its index into ``take_pace`` and ``take_style``."""
+        where, flat = self._match(features)
         gap = flat - self.frames[where]
-        return self.labels[where].reshape(features.shape[:-1]), gap.reshape(features.shape)
+        shape = features.shape[:-1]
+        return (
+            self.labels[where].reshape(shape),
+            self.take[where].reshape(shape),
+            gap.reshape(features.shape),
+        )
+
+    def takes(self, features: Tensor) -> Tensor:
+        """The take (...,) whose frame is nearest each of ``features`` (..., D)."""
+        return self.read(features)[1]
 
     def nearest(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """The content index (...,) of frames ``features`` (..., D) and their distance (...,)
@@ -259,6 +296,23 @@ def _content_index(corpus: str) -> ContentIndex:
     if corpus not in _INDEXES:
         _INDEXES[corpus] = ContentIndex(corpus)
     return _INDEXES[corpus]
+
+
+def _resembled(
+    index: ContentIndex, near: Tensor, speed: Tensor, style: str | None, when: str
+) -> dict[str, float]:
+    """Whom the futures look like: the mean pace (m/s) of the training takes nearest the
+    frames ``near`` (K, F) of K futures (or of the take itself, K = 1), the futures' speed
+    ``speed`` (K,) over that pace (1: as fast as the takes its poses come from; far above 1:
+    gliding in another take's poses), and the share of frames on a take of the start's
+    ``style``."""
+    pace = index.take_pace[near].mean(-1)  # (K,)
+    same = torch.tensor([[index.take_style[t] == style for t in r] for r in near.tolist()])
+    return {
+        f"resembled_pace_{when}": float(pace.mean()),
+        f"pace_vs_poses_{when}": float((speed.double() / pace.clamp_min(1e-6)).mean()),
+        f"style_{when}": float(same.double().mean()) if style is not None else float("nan"),
+    }
 
 
 def _shares(labels: Tensor, own: int) -> tuple[float, float]:
@@ -432,12 +486,15 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             "Jnt.Accel_data": ref["Jnt.Accel"],
             "Bone.Err": metrics.bone_length_error(short_pos, sk.parents, ref["bones"]),
         }
-        labels, gap = index.gaps(f_i[:, n_short - tail : n_short])
-        data_labels, data_gap = index.gaps(encode(clip))
+        labels, near, gap = index.read(f_i[:, n_short - tail : n_short])
+        data_labels, data_near, data_gap = index.read(encode(clip))
         on_loco, kept = _shares(labels, own)
         data_loco, data_kept = _shares(data_labels, own)
         row |= {"locomotion_10s": on_loco, "locomotion_data": data_loco}
         row |= {"content_10s": kept, "content_data": data_kept}
+        style = clip.labels.get("style")
+        row |= _resembled(index, near, s10, style, "10s")
+        row |= _resembled(index, data_near[None], torch.tensor([ref["speed"]]), style, "data")
         row |= {
             "pose_dist_10s": float(_rms(gap).mean()),
             "pose_dist_data": float(_rms(data_gap).mean()),
@@ -454,9 +511,10 @@ def locomotion_report(ckpt: Checkpoint, protocol: LocomotionProtocol | None = No
             row["along_ratio_60s"] = _ratio(float(tail_mean(along, n_frames).mean()), ref["speed"])
             row["moving_60s"] = float((s60 >= p.moving_ratio * ref["speed"]).double().mean())
             row["Bone.Err_60s"] = metrics.bone_length_error(x_i, sk.parents, ref["bones"])
-            labels, dist = index.nearest(f_i[:, n_frames - tail :])
+            labels, near, gap = index.read(f_i[:, n_frames - tail :])
             row["locomotion_60s"] = _shares(labels, own)[0]
-            row["pose_dist_60s"] = float(dist.mean())
+            row["pose_dist_60s"] = float(_rms(gap).mean())
+            row |= _resembled(index, near, s60, style, "60s")
             if on_box is not None:
                 row["at_box_60s"] = float(on_box[i])
         rows.append(row)
@@ -543,6 +601,8 @@ STUDY_COLUMNS = {
     "on loco 10 s": "locomotion_10s",
     "on loco 60 s": "locomotion_60s",
     "content kept": "content_10s",
+    "style kept": "style_10s",
+    "pace ÷ poses'": "pace_vs_poses_10s",
     "off data 10 s": "off_data_10s",
     "off data 60 s": "off_data_60s",
     "off root 10 s": "off_data_10s_root",
@@ -663,7 +723,11 @@ YARDSTICK_COLUMNS = {
 
 
 def yardstick_table(
-    path: str | Path, tag: str, checkpoints: dict[str, str], contents: tuple[str, ...] = LOCOMOTION
+    path: str | Path,
+    tag: str,
+    checkpoints: dict[str, str],
+    contents: tuple[str, ...] = LOCOMOTION,
+    columns: dict[str, str] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Per content and model, the yardstick rows of ``benchmarks/locomotion.py`` with one tag.
 
@@ -672,11 +736,13 @@ def yardstick_table(
         tag: the rows' ``tag`` (a file holds several rounds).
         checkpoints: ``{row label: checkpoint path as recorded}``, in table order.
         contents: the contents, in table order, then ``"all"`` (every take pooled).
+        columns: ``{header: record key}`` (default :data:`YARDSTICK_COLUMNS`).
 
     Returns ``{"content, label": {column: (mean, std) over the sampling seeds, "seeds": n}}``
     with the columns of :data:`YARDSTICK_COLUMNS`: speeds as ratios of the take's own, foot
     sliding and joint acceleration of the model beside the same takes' own (cm, cm/frame²).
     """
+    columns = YARDSTICK_COLUMNS if columns is None else columns
     found: dict[tuple[str, str], list[dict]] = {}
     for line in Path(path).read_text().splitlines():
         rec = json.loads(line)
@@ -691,7 +757,7 @@ def yardstick_table(
             if not recs:
                 raise ValueError(f"{path} holds no {tag!r} row of {ck} for {content!r}")
             row: dict[str, Any] = {}
-            for header, key in YARDSTICK_COLUMNS.items():
+            for header, key in columns.items():
                 vals = [r[key] for r in recs]
                 row[header] = (float(np.mean(vals)), float(np.std(vals)))
             row["seeds"] = len(recs)
