@@ -230,13 +230,6 @@ class ContentIndex:
         self.take_pace = torch.tensor(pace, dtype=torch.float64)  # (T,) m/s
         self.take_style = styles  # (T,)
 
-    def _match(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        """The row (M,) of the nearest training frame of each of ``features`` (..., D), and
-        the frames (M, D) in spreads."""
-        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
-        where = torch.cat([torch.cdist(c, self.frames).argmin(1) for c in flat.split(1024)])
-        return where, flat
-
     def gaps(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """The content index (...,) of frames ``features`` (..., D) in feature units, and
         their difference (..., D) from that nearest training frame, each feature in its spread:
@@ -247,7 +240,8 @@ class ContentIndex:
     def read(self, features: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """What :meth:`gaps` gives, with the take (...,) of each nearest training frame in
         between: its index into ``take_pace`` and ``take_style``."""
-        where, flat = self._match(features)
+        flat = ((features.float() - self.mean) / self.std).reshape(-1, self.frames.shape[1])
+        where = torch.cat([torch.cdist(c, self.frames).argmin(1) for c in flat.split(1024)])
         gap = flat - self.frames[where]
         shape = features.shape[:-1]
         return (
