@@ -222,72 +222,6 @@ def test_later_player_alone_in_a_new_browser_keeps_its_poster(browser, site):
     v.context.close()
 
 
-def test_book_pages_are_offline_and_render_maths(browser, site):
-    base, html = site
-    pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
-    pages += ["intro.html", "notation.html", "glossary.html", "bibliography.html"]
-    assert len(pages) >= 8
-    v, n_players = Visit(browser, base), 0
-    for name in pages:
-        p = v.open(name)
-        if name.startswith("notebooks/") or name in ("notation.html", "glossary.html"):
-            p.wait_for_function("window.MathJax && MathJax.startup && MathJax.startup.promise")
-            p.evaluate("MathJax.startup.promise.then(() => document.fonts.ready).then(() => 1)")
-            assert p.locator("mjx-container").count() > 0, f"{name}: no rendered maths"
-            prose = p.evaluate(
-                """() => { const a = document.querySelector('article').cloneNode(true);
-                a.querySelectorAll('pre, code, .cell_input, .cell_output').forEach(e => e.remove());
-                return a.innerText; }"""
-            )
-            for raw in ("\\(", "\\[", "$$"):
-                assert raw not in prose, f"{name}: raw TeX {raw!r} in the text"
-            if name.endswith("03_amdm.html"):
-                keep(p, "chapter3", full_page=False)
-            n_players += check_players(p, name)
-        v.check_clean()
-    v.context.close()
-    assert n_players >= 4, f"only {n_players} players in the chapters"
-
-
-def check_players(p, name: str) -> int:
-    """Every player on a chapter page mounts (its poster gives way), draws a picture that is not
-    blank and keeps its labels inside it; each is paused first, so that the page's players do not
-    all play at once."""
-    players = p.locator(".minimdm-player")
-    n = players.count()
-    if n == 0:
-        return 0
-    p.wait_for_function(
-        f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
-        timeout=PAGE_TIMEOUT,
-    )
-    for i in range(n):  # scrubbing pauses a player
-        players.nth(i).locator("input[type=range]").evaluate(
-            "s => { s.value = 0; s.dispatchEvent(new Event('input', {bubbles: true})); }"
-        )
-    assert players.locator(".mmp-poster").count() == 0, f"{name}: a poster was not replaced"
-    for i in range(n):
-        players.nth(i).scroll_into_view_if_needed()
-        settle(p)
-        img = shot(players.nth(i).locator("canvas"))
-        assert img.std() > 8, f"{name}: player {i} looks blank (std {img.std():.1f})"
-        cut = players.nth(i).evaluate(
-            """e => { const c = e.querySelector('canvas').getBoundingClientRect();
-            return [...e.querySelectorAll('.mmp-label')]
-              .filter(l => l.textContent && l.style.visibility !== 'hidden')
-              .filter(l => { const r = l.getBoundingClientRect();
-                             return r.top < c.top - 1 || r.bottom > c.bottom + 1; })
-              .map(l => l.textContent); }"""
-        )
-        assert cut == [], f"{name}: player {i} cuts off its labels {cut}"
-        folder = os.environ.get("MINIMDM_SCREENSHOTS")
-        if folder:
-            Path(folder).mkdir(parents=True, exist_ok=True)
-            shot_path = Path(folder) / f"{Path(name).stem}_player{i}.png"
-            players.nth(i).screenshot(path=str(shot_path))
-    return n
-
-
 # Every output area (text and HTML) that scrolls sideways, and every figure shown below 80% of
 # its own width (a PNG's width attribute, else its pixels), on a chapter page.
 LAYOUT = """() => {
@@ -308,67 +242,175 @@ LAYOUT = """() => {
 }"""
 
 
-def test_chapter_outputs_fit_the_column(browser, site):
+MATHS_PAGES = ("notation.html", "glossary.html")  # besides the chapters
+OTHER_PAGES = ["intro.html", "notation.html", "glossary.html", "bibliography.html"]
+
+
+@pytest.fixture(scope="module")
+def walk(browser, site) -> dict[str, dict]:
+    """Every page of the book, each opened once at a 1280-pixel window (a 688-pixel text column),
+    with what the tests below read from it: console errors and requests outside the book, the
+    rendered maths and any raw TeX left in the prose, and on a chapter page its players, its
+    layout and its exercise solutions. Walking once serves all of them: on a CPU, mounting a
+    page's WebGL players is most of the time a visit takes."""
+    base, html = site
+    chapters = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
+    v, seen = Visit(browser, base, browser.new_context(viewport={"width": 1280, "height": 900})), {}
+    for name in chapters + OTHER_PAGES:
+        p, rec = v.open(name), {}
+        if name in chapters or name in MATHS_PAGES:
+            rec |= read_maths(p)
+        if name in chapters:
+            p.wait_for_function("[...document.images].every(i => i.complete)")
+            rec["layout"] = p.evaluate(LAYOUT)
+            rec |= read_players(p, name)
+            rec["solutions"] = read_solutions(p, name)
+        if name.endswith("03_amdm.html"):
+            keep(p, "chapter3", full_page=False)
+        rec["errors"], rec["outside"] = list(v.errors), list(v.outside)
+        v.errors.clear()
+        v.outside.clear()
+        seen[name] = rec
+    v.context.close()
+    return seen
+
+
+def read_maths(p) -> dict:
+    """How many formulas MathJax rendered, and which raw TeX delimiters are left in the prose."""
+    p.wait_for_function("window.MathJax && MathJax.startup && MathJax.startup.promise")
+    p.evaluate("MathJax.startup.promise.then(() => document.fonts.ready).then(() => 1)")
+    prose = p.evaluate(
+        """() => { const a = document.querySelector('article').cloneNode(true);
+        a.querySelectorAll('pre, code, .cell_input, .cell_output').forEach(e => e.remove());
+        return a.innerText; }"""
+    )
+    raw = [r for r in ("\\(", "\\[", "$$") if r in prose]
+    return {"maths": p.locator("mjx-container").count(), "raw_tex": raw}
+
+
+def read_players(p, name: str) -> dict:
+    """Every player on a chapter page: it mounts (its poster gives way), draws a picture that is
+    not blank, keeps its labels inside it, and shows its characters (the share of the picture's
+    height, at the first and the middle frame). Each is paused first, so that the page's players
+    do not all play at once."""
+    players, problems, heights = p.locator(".minimdm-player"), [], {}
+    n = players.count()
+    if n == 0:
+        return {"players": 0, "player_problems": [], "heights": {}}
+    p.wait_for_function(
+        f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
+        timeout=PAGE_TIMEOUT,
+    )
+    for i in range(n):  # scrubbing pauses a player
+        players.nth(i).locator("input[type=range]").evaluate(
+            "s => { s.value = 0; s.dispatchEvent(new Event('input', {bubbles: true})); }"
+        )
+    if players.locator(".mmp-poster").count():
+        problems.append(f"{name}: a poster was not replaced")
+    folder = os.environ.get("MINIMDM_SCREENSHOTS")
+    for i in range(n):
+        players.nth(i).scroll_into_view_if_needed()
+        settle(p)
+        img = shot(players.nth(i).locator("canvas"))
+        if img.std() <= 8:
+            problems.append(f"{name}: player {i} looks blank (std {img.std():.1f})")
+        cut = players.nth(i).evaluate(
+            """e => { const c = e.querySelector('canvas').getBoundingClientRect();
+            return [...e.querySelectorAll('.mmp-label')]
+              .filter(l => l.textContent && l.style.visibility !== 'hidden')
+              .filter(l => { const r = l.getBoundingClientRect();
+                             return r.top < c.top - 1 || r.bottom > c.bottom + 1; })
+              .map(l => l.textContent); }"""
+        )
+        if cut:
+            problems.append(f"{name}: player {i} cuts off its labels {cut}")
+        if folder:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            players.nth(i).screenshot(path=str(Path(folder) / f"{Path(name).stem}_player{i}.png"))
+        for at in ("0", "Math.floor(pl.nFrames / 2)"):
+            js = f"e => {{ const pl = e.minimdmPlayer; pl.setFrame({at}); "
+            js += "return pl.bodyHeights(); }"
+            heights[f"{name} player {i} frame {at[:1]}"] = players.nth(i).evaluate(js)
+    return {"players": n, "player_problems": problems, "heights": heights}
+
+
+def read_solutions(p, name: str) -> dict | None:
+    """A page's sphinx-exercise solutions (None where it has none): how many exercises and
+    solutions, which solutions show before any click, and whether the first one opens with its
+    toggle button."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    solutions = p.locator("div.solution")
+    if solutions.count() == 0:
+        return None
+    p.wait_for_selector("div.solution button.toggle-button", state="attached")
+    shown = [
+        i
+        for i in range(solutions.count())
+        if solutions.nth(i).locator("section#solution-content").is_visible()
+    ]
+    first = solutions.nth(0)
+    first.scroll_into_view_if_needed()
+    first.locator("button.toggle-button").click()
+    body = first.locator("section#solution-content")
+    try:
+        body.wait_for(state="visible", timeout=15_000)
+        opens = True
+    except PlaywrightTimeout:  # the click did not unfold it
+        opens = False
+    if name.endswith("08_acceleration_ddgan.html"):
+        keep(p, "chapter8_solution_open", full_page=False)
+    n_ex = p.locator("div.exercise").count()
+    return {"exercises": n_ex, "solutions": solutions.count(), "shown": shown, "opens": opens}
+
+
+def test_book_pages_are_offline_and_render_maths(walk):
+    """No page logs a console error or asks for anything outside the book; the chapters, the
+    notation and the glossary render their maths and leave no raw TeX in the prose."""
+    assert len(walk) >= 8
+    for name, rec in walk.items():
+        assert rec["outside"] == [], f"{name}: requests outside the book: {rec['outside']}"
+        assert rec["errors"] == [], f"{name}: console errors: {rec['errors']}"
+        if "maths" in rec:
+            assert rec["maths"] > 0, f"{name}: no rendered maths"
+            assert rec["raw_tex"] == [], f"{name}: raw TeX {rec['raw_tex']} in the text"
+
+
+def test_chapter_players_mount_and_draw(walk):
+    """Every player on every chapter page mounts, draws a picture that is not blank and keeps
+    its labels inside it."""
+    n_players = sum(rec.get("players", 0) for rec in walk.values())
+    assert n_players >= 4, f"only {n_players} players in the chapters"
+    problems = [msg for rec in walk.values() for msg in rec.get("player_problems", [])]
+    assert problems == [], "\n".join(problems)
+
+
+def test_chapter_outputs_fit_the_column(walk):
     """On every chapter page, at a 1280-pixel window (a 688-pixel text column): no output
     scrolls sideways, no figure is shrunk below 80% of its width, and each player's default
     camera shows its characters at least about a third of the picture's height (at the first
     and the middle frame)."""
-    base, html = site
-    pages = sorted(str(f.relative_to(html)) for f in (html / "notebooks").glob("*.html"))
-    context = browser.new_context(viewport={"width": 1280, "height": 900})
-    v, problems, heights = Visit(browser, base, context), [], {}
-    for name in pages:
-        p = v.open(name)
-        p.wait_for_function("[...document.images].every(i => i.complete)")
-        r = p.evaluate(LAYOUT)
+    problems, heights = [], {}
+    for name, rec in walk.items():
+        if "layout" not in rec:
+            continue
+        r = rec["layout"]
         assert r["column"] == 752, r["column"]  # the article; its code areas are 688 px
         problems += [f"{name}: wide output {w}" for w in r["wide"]]
         problems += [f"{name}: shrunk figure {s}" for s in r["small"]]
-        players = p.locator(".minimdm-player")
-        n = players.count()
-        if n:
-            p.wait_for_function(
-                f"document.querySelectorAll('.minimdm-player[data-ready=\"1\"]').length === {n}",
-                timeout=PAGE_TIMEOUT,
-            )
-        for i in range(n):
-            for at in ("0", "Math.floor(pl.nFrames / 2)"):
-                h = players.nth(i).evaluate(
-                    f"e => {{ const pl = e.minimdmPlayer; pl.setFrame({at}); "
-                    "return pl.bodyHeights(); }"
-                )
-                heights[f"{name} player {i} frame {at[:1]}"] = h
-                if sum(h) / len(h) < 0.3:
-                    problems.append(f"{name}: player {i} shows its characters {h} of its height")
-        v.check_clean()
-    v.context.close()
+        heights |= rec["heights"]
+    for where, h in heights.items():
+        if sum(h) / len(h) < 0.3:
+            problems.append(f"{where} shows its characters {h} of its height")
     assert len(heights) >= 8, heights
     assert problems == [], "\n".join(problems)
 
 
-def test_exercise_solutions_are_hidden_until_clicked(browser, site):
+def test_exercise_solutions_are_hidden_until_clicked(walk):
     """Every sphinx-exercise solution starts folded and opens with its toggle button."""
-    base, html = site
-    v = Visit(browser, base)
-    pages = [
-        str(f.relative_to(html))
-        for f in sorted((html / "notebooks").glob("*.html"))
-        if 'class="solution' in f.read_text()
-    ]
+    pages = {name: rec["solutions"] for name, rec in walk.items() if rec.get("solutions")}
     assert pages, "no chapter uses sphinx-exercise solutions"
-    for name in pages:
-        p = v.open(name)
-        p.wait_for_selector("div.solution button.toggle-button", state="attached")
-        solutions = p.locator("div.solution")
-        assert p.locator("div.exercise").count() >= solutions.count() > 0
-        for i in range(solutions.count()):
-            body = solutions.nth(i).locator("section#solution-content")
-            assert not body.is_visible(), f"{name}: solution {i + 1} is shown before a click"
-        first = solutions.nth(0)
-        first.scroll_into_view_if_needed()
-        first.locator("button.toggle-button").click()
-        first.locator("section#solution-content").wait_for(state="visible")
-        if name.endswith("08_acceleration_ddgan.html"):
-            keep(p, "chapter8_solution_open", full_page=False)
-        v.check_clean()
-    v.context.close()
+    for name, s in pages.items():
+        assert s["exercises"] >= s["solutions"] > 0, (name, s)
+        assert s["shown"] == [], f"{name}: solutions {s['shown']} are shown before a click"
+        assert s["opens"], f"{name}: the first solution does not open with its button"
