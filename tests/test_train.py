@@ -827,3 +827,51 @@ def test_a_model_told_its_condition_noise_reads_each_drawn_size():
         tiny(cond_noise=0.5, cond_level=0.2)  # a fixed draw tells the model nothing
     with pytest.raises(ValueError, match=r"cond_level must be in \[0, 1\] or null"):
         tiny(cond_noise=0.5, cond_noise_draw="uniform", cond_level=-0.1)
+
+
+def test_an_extra_corpus_adds_its_takes_to_the_training_takes(tmp_path):
+    """extra_corpus: a second source's takes join the training takes, and the normalizer is fitted
+    on both; extra_contents keeps only its takes of those contents. A source of another skeleton
+    is refused naming both skeletons' joints, and so are contents the source does not have."""
+    from minimdm.amdm.train import _load_data
+    from minimdm.motion.bvh import save_bvh
+    from minimdm.motion.corpora import load_corpus
+    from minimdm.motion.data import load_clips
+    from minimdm.validate import InputError, MismatchError
+
+    added = ["dataset-1_run_happy_001", "dataset-1_walk_normal_001"]  # held-out takes
+    for clip in load_corpus("bandai-namco-1", split="test", takes=added):
+        save_bvh(tmp_path / "same" / f"{clip.name}.bvh", clip)
+    base = dict(corpus="bandai-namco-1", split="train", loop_frames=None,
+                clips=["dataset-1_walk_normal_002"])  # fmt: skip
+    one = _load_data(TrainConfig(**base))
+    both = _load_data(TrainConfig(**base, extra_corpus=str(tmp_path / "same")))
+    assert both["clip_names"] == one["clip_names"] + added
+    assert len(both["features"]) == 3 and len(both["heldout"]) == len(one["heldout"])
+    assert not torch.allclose(both["normalizer"].mean, one["normalizer"].mean)
+    # the first take's frames are the same recorded frames under either normalizer
+    torch.testing.assert_close(
+        both["normalizer"].denormalize(both["features"][0]),
+        one["normalizer"].denormalize(one["features"][0]),
+        rtol=1e-4,
+        atol=1e-4,
+    )
+    # a labelled corpus as the extra source: only its runs (every take of them, train and test)
+    folder = dict(corpus=str(tmp_path / "same"), split=None, loop_frames=None)
+    with pytest.raises(InputError, match=r"takes \['dataset-1_run_happy_001'\] are in both"):
+        _load_data(TrainConfig(**folder, extra_corpus="bandai-namco-1", extra_contents=["run"]))
+    (tmp_path / "same" / "dataset-1_run_happy_001.bvh").unlink()
+    runs = _load_data(TrainConfig(**folder, extra_corpus="bandai-namco-1", extra_contents=["run"]))
+    extra_names = runs["clip_names"][1:]
+    assert extra_names and all("_run_" in n for n in extra_names)
+    assert "dataset-1_run_happy_001" in extra_names  # a test take of bandai-namco-1 is included
+    with pytest.raises(InputError, match=r"extra_contents \['swim'\] are not contents"):
+        _load_data(TrainConfig(**folder, extra_corpus="bandai-namco-1", extra_contents=["swim"]))
+    humanoid = load_clips(names=["walk"])[0]  # DeepMimic's humanoid: other joints
+    save_bvh(tmp_path / "other" / "walk.bvh", humanoid)
+    with pytest.raises(MismatchError, match="has joints .* bandai-namco-1 has"):
+        _load_data(TrainConfig(**base, extra_corpus=str(tmp_path / "other")))
+    with pytest.raises(ValueError, match="extra_contents names contents of extra_corpus"):
+        TrainConfig(extra_contents=["walk"])
+    with pytest.raises(ValueError, match="extra_corpus is the corpus itself"):
+        TrainConfig(corpus="bandai-namco-1", extra_corpus="bandai-namco-1")

@@ -70,9 +70,16 @@ from minimdm.diffusion import (
 )
 from minimdm.files import RunLock
 from minimdm.motion.corpora import LOCOMOTION
+from minimdm.motion.data import MotionDataset
 from minimdm.training import Recipe, StepOut, TrainState, read_log, start_training, train_loop
 from minimdm.utils import num_threads as threads
-from minimdm.validate import InputError, InputTypeError, check_output_dir, describe
+from minimdm.validate import (
+    InputError,
+    InputTypeError,
+    MismatchError,
+    check_output_dir,
+    describe,
+)
 
 __all__ = [
     "TrainConfig",
@@ -112,6 +119,12 @@ def _load_data(config: TrainConfig) -> dict[str, Any]:
     from minimdm.motion import features
 
     clips = _load_clips(config.corpus, config.split, config.fps, config.clips, config.loop_frames)
+    if config.extra_corpus is not None:
+        extra = _extra_clips(config, clips[0].skeleton)
+        twice = sorted(set(clips.names) & {c.name for c in extra})
+        if twice:
+            raise InputError(f"takes {twice[:3]} are in both {config.corpus} and extra_corpus")
+        clips = MotionDataset(list(clips) + extra)
     arrays = [features.encode(c) for c in _with_mirrored(clips, config.mirror)]  # [(F_i - 1, D)]
     normalizer = features.Normalizer.fit(arrays)
     if config.feature_scale != 1.0:
@@ -176,6 +189,33 @@ def _with_mirrored(clips: Any, mirror: bool) -> list:
 
     clips = list(clips)
     return clips + mirror_clips(clips) if mirror else clips
+
+
+def _extra_clips(config: TrainConfig, skeleton: Any) -> list:
+    """The takes of ``config.extra_corpus`` (a corpus name or a folder of BVH files; of
+    ``extra_contents`` only, when given), checked to share the corpus's skeleton: the same joints
+    in the same order."""
+    from minimdm.motion.corpora import load_motion
+
+    extra = load_motion(config.extra_corpus, fps=config.fps)
+    if config.extra_contents is not None:
+        have = {c.labels.get("content") for c in extra}
+        unknown = sorted(set(config.extra_contents) - have)
+        if unknown:
+            raise InputError(
+                f"extra_contents {unknown} are not contents of {config.extra_corpus!r}; "
+                f"it has {sorted(h for h in have if h)}"
+            )
+        extra = [c for c in extra if c.labels.get("content") in set(config.extra_contents)]
+    for clip in extra:
+        theirs = (list(clip.skeleton.names), list(clip.skeleton.parents))
+        if theirs != (list(skeleton.names), list(skeleton.parents)):
+            raise MismatchError(
+                f"{config.extra_corpus} take {clip.name} has joints {theirs[0]} (parents "
+                f"{theirs[1]}); {config.corpus} has {list(skeleton.names)} (parents "
+                f"{list(skeleton.parents)})"
+            )
+    return list(extra)
 
 
 def _load_clips(corpus: str, split: str | None, fps: float, names: Any, loop_frames: Any) -> Any:

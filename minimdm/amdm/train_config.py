@@ -208,6 +208,15 @@ class TrainConfig:
     """'train' or 'test' takes of the corpus's fixed split, or None (all; a folder has no split)."""
     clips: list[str] | None = None
     """Names of the clips or takes to train on (None: all of them)."""
+    extra_corpus: str | None = None
+    """A second corpus (or folder of BVH files) of the same skeleton whose takes are added to the
+    training takes, all of them (its own split is not used: the held-out takes stay
+    ``corpus``'s), e.g.
+    'bandai-namco-2' (`minimdm data download bandai-namco-2`) for more walks and runs. The
+    normalizer is fitted on both. None: ``corpus`` alone."""
+    extra_contents: list[str] | None = None
+    """Only the ``extra_corpus`` takes of these contents (their ``content`` label), e.g.
+    ``[walk, run]``; None: all of its takes."""
     loop_frames: int | None = 150
     """Unroll looping clips to this many frames so windows cross the loop seam (None: 1 cycle;
     DeepMimic only: corpus takes do not loop)."""
@@ -277,6 +286,10 @@ class TrainConfig:
             raise ValueError(
                 f"locomotion_split must be 'equal' or 'frames', got {self.locomotion_split!r}"
             )
+        if self.extra_contents is not None and self.extra_corpus is None:
+            raise ValueError("extra_contents names contents of extra_corpus, which is null")
+        if self.extra_corpus is not None and self.extra_corpus == self.corpus:
+            raise ValueError(f"extra_corpus is the corpus itself ({self.corpus!r})")
         if self.storage not in ("float32", "float16", "bfloat16"):
             raise ValueError(
                 f"storage must be 'float32', 'float16' or 'bfloat16', got {self.storage!r}"
