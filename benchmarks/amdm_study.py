@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
@@ -38,6 +39,13 @@ RESULTS = ROOT / "benchmarks" / "results" / "amdm_study.jsonl"
 
 def _value(text: str):
     return yaml.safe_load(text)
+
+
+def train_takes(names: list[str]) -> dict[str, int]:
+    """Training takes per corpus and content, from Bandai-Namco take names
+    (``dataset-1_walk_normal_001`` counts as ``dataset-1 walk``); other names count by name."""
+    parts = [n.split("_") for n in names]
+    return dict(Counter(f"{p[0]} {p[1]}" if len(p) == 4 else "_".join(p) for p in parts))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         "heldout_loss": heldout[-1] if heldout else None,
         "heldout_loss_min": min(heldout) if heldout else None,
         "sampling_cond_level": getattr(ckpt.model.config, "cond_level", None),
+        "train_takes": train_takes(ckpt.metadata.get("data", {}).get("clips") or []),
+        "train_windows": ckpt.metadata.get("data", {}).get("windows"),
     }
     if args.table1:
         protocol = evaluation.Protocol()
