@@ -856,6 +856,15 @@ def test_an_extra_corpus_adds_its_takes_to_the_training_takes(tmp_path):
         rtol=1e-4,
         atol=1e-4,
     )
+    # a trained checkpoint finds its clips again in both sources (Table 1's foot offsets need them)
+    from minimdm.amdm.evaluation import checkpoint_clips
+
+    cfg = tiny(**base, extra_corpus=str(tmp_path / "same"))
+    train_amdm(cfg, tmp_path / "run", progress=False)
+    ckpt = load_checkpoint(tmp_path / "run")
+    assert checkpoint_clips(ckpt).names == both["clip_names"]
+    held_out = load_corpus("bandai-namco-1", split="test").names
+    assert checkpoint_clips(ckpt, split="test").names == held_out
     # a labelled corpus as the extra source: only its runs (every take of them, train and test)
     folder = dict(corpus=str(tmp_path / "same"), split=None, loop_frames=None)
     with pytest.raises(InputError, match=r"takes \['dataset-1_run_happy_001'\] are in both"):

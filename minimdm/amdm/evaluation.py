@@ -154,8 +154,8 @@ def checkpoint_skeleton(ckpt: Checkpoint) -> Skeleton:
 def checkpoint_clips(
     ckpt: Checkpoint | None = None, unrolled: bool = True, split: str = "train"
 ) -> MotionDataset:
-    """The clips a checkpoint was trained on, as it saw them (fps, loop unrolling), or its
-    corpus's held-out takes.
+    """The clips a checkpoint was trained on, as it saw them (fps, loop unrolling; with its
+    ``extra_corpus``'s takes too), or its corpus's held-out takes.
 
     Args:
         ckpt: the checkpoint (None: the 20 DeepMimic clips).
@@ -172,6 +172,12 @@ def checkpoint_clips(
     fps = ckpt.fps if ckpt is not None else DEFAULT_FPS
     if split == "train":
         names = data.get("clips") or cfg.get("clips")
+        if cfg.get("extra_corpus") and names:  # two sources: each clip from its own
+            own = _motion(corpus, trained_on, fps, None, loop)
+            rest = tuple(n for n in names if n not in set(own.names))
+            extra = _motion(cfg["extra_corpus"], None, fps, rest, loop) if rest else []
+            both = {c.name: c for c in [*own, *extra]}
+            return MotionDataset([both[n] for n in names])
         return _motion(corpus, trained_on, fps, tuple(names) if names else None, loop)
     if split != "test":
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
