@@ -209,9 +209,8 @@ class TrainConfig:
     clips: list[str] | None = None
     """Names of the clips or takes to train on (None: all of them)."""
     extra_corpus: str | None = None
-    """A second corpus (or folder of BVH files) of the same skeleton whose takes are added to the
-    training takes, all of them (its own split is not used: the held-out takes stay
-    ``corpus``'s), e.g.
+    """A second corpus (or folder of BVH files) of the same skeleton whose takes are all added to
+    the training takes (its own split is not used: the held-out takes stay ``corpus``'s), e.g.
     'bandai-namco-2' (`minimdm data download bandai-namco-2`) for more walks and runs. The
     normalizer is fitted on both. None: ``corpus`` alone."""
     extra_contents: list[str] | None = None
