@@ -20,8 +20,13 @@ from common import ROOT, hardware
 
 import minimdm
 from minimdm.amdm import evaluation
+from minimdm.motion.skeleton import wrap_angle
 from minimdm.rl import load_steering
 from minimdm.rl.rollout import steer
+
+SPIN_DEG_S = 180.0
+"""Degrees per second: a character whose heading turns faster than this, averaged over half a
+second, spins. 1.0% of the training takes' half-second windows turn that fast."""
 
 
 def main() -> None:
@@ -50,12 +55,16 @@ def main() -> None:
                 [he[:, k * 120 + 60 : (k + 1) * 120].mean(1) for k in range(4)], 1
             )  # (N, 4)
             sp = m.info["speed_error"].abs()[:, (torch.arange(F) % 120) >= 60]
+            # spinning: the heading turns faster than SPIN_DEG_S, averaged over half a second
+            turn = wrap_angle(torch.diff(m.heading, dim=1), include_pi=False) * 30 * 180 / math.pi
+            turn = torch.nn.functional.avg_pool1d(turn[:, None], 15, 1)[:, 0]
             per_seed.append(
                 {
                     "settled_deg": float(seg.mean()),
                     "median_segment_deg": float(seg.median()),
                     "segments_over_15deg": float((seg > 15).float().mean()),
                     "speed_err_settled_mps": float(sp.mean()),
+                    "spinning_share": float((turn.abs() > SPIN_DEG_S).float().mean()),
                 }
             )
         row = {
@@ -64,7 +73,14 @@ def main() -> None:
             "trained_as": meta.get("trained_as", meta["command"]),
             "config": {
                 k: meta["config"][k]
-                for k in ("residual_scale", "n_levels", "gamma", "total_steps", "max_turn_rate")
+                for k in (
+                    "residual_scale",
+                    "n_levels",
+                    "gamma",
+                    "total_steps",
+                    "max_turn_rate",
+                    "action_penalty",
+                )
                 if k in meta["config"]
             },
             "train_seconds": meta["train_seconds"],
@@ -93,6 +109,7 @@ def main() -> None:
                         "median_segment_deg",
                         "segments_over_15deg",
                         "speed_err_settled_mps",
+                        "spinning_share",
                     )
                 }
             ),
