@@ -9,18 +9,27 @@ gain per unit push at that level (1 at the last level, where nothing denoises af
 a unit action moves the next frame. The configs of chapter 7's policies use the 10 noisiest of
 20 levels, w^t falling linearly from 2 to 0.2.
 
-    python benchmarks/rl_residual_gain.py amdm amdm_halting \
+``--spin`` also measures whether the base model comes back from a turn: the yaw residual is held
+at the box edge (+1) for 0.5, 1 or 2 s through that schedule, from frame 20 of the held-out
+walk and run takes; then the model runs on alone for 7 s. It reports the share of characters
+still spinning (heading turning faster than 180 degrees per second over half a second, as
+``benchmarks/rl_joystick_study.py`` counts) 1, 3 and 7 s after the push. A base model that
+keeps spinning on its own hands a policy a trap that no later action undoes quickly.
+
+    python benchmarks/rl_residual_gain.py amdm amdm_halting --spin \
         --out benchmarks/results/rl_residual_gain.jsonl
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 
 import torch
 from common import emit, hardware  # noqa: I001  (benchmarks/common.py puts the repo on the path)
 
 import minimdm
+from minimdm.amdm import evaluation
 from minimdm.amdm.sampling import Sampler
 from minimdm.rl.env import ResidualSteerer
 from minimdm.rl.residual import ResidualSchedule
@@ -46,11 +55,36 @@ def level_gains(cm: Sampler, starts: torch.Tensor, push: float = 0.5) -> dict[in
     return out
 
 
+SPIN_DEG_S = 180.0
+"""Turning faster than this (degrees per second, over half a second) is spinning."""
+
+
+@torch.no_grad()
+def spin_after_push(
+    cm: Sampler, starts: torch.Tensor, steer: ResidualSteerer, push_frames: int, after: int
+) -> torch.Tensor:
+    """(B, after) whether each character spins at each frame after a full yaw push held for
+    ``push_frames`` frames, the model then running on with zero residuals."""
+    a = torch.zeros(len(starts), len(FEATURES))
+    a[:, FEATURES.index("yaw")] = 1.0
+    yaw_col, gen, x = cm.layout.yaw_rate.start, torch.Generator().manual_seed(0), starts
+    rates = []
+    for f in range(push_frames + after):
+        x = steer(x, a if f < push_frames else torch.zeros_like(a), gen)
+        rates.append(cm.denormalize(x)[:, yaw_col])  # radians per frame
+    deg_s = torch.stack(rates[push_frames:], 1) * cm.fps * 180 / math.pi
+    smooth = torch.nn.functional.avg_pool1d(
+        deg_s[:, None], 15, 1, padding=7, count_include_pad=False
+    )
+    return smooth[:, 0].abs() > SPIN_DEG_S
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("models", nargs="+", help="base A-MDM checkpoints, e.g. amdm amdm_halting")
     p.add_argument("--levels", type=int, default=10, help="the schedule's noisiest levels")
     p.add_argument("--scale", type=float, default=2.0, help="the schedule's w at the top")
+    p.add_argument("--spin", action="store_true", help="also: does it come back from a push?")
     p.add_argument("--out", default=None, help="append the lines to this .jsonl file")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -67,6 +101,22 @@ def main() -> None:
               "schedule": sched.to_dict(),
               "authority": dict(zip(FEATURES, [round(a, 3) for a in authority], strict=True)),
               "hardware": hardware()}, args.out)  # fmt: skip
+        if args.spin:
+            test = evaluation.checkpoint_clips(ck, split="test")
+            takes = [c.name for c in test if c.labels["content"] in ("walk", "run")]
+            held = cm.normalize(
+                torch.stack([evaluation.initial_state(ck, n, 20).features for n in takes])
+            ).repeat(4, 1)  # 4 futures per take
+            tied = ResidualSchedule.top(cm.schedule.T, args.levels, "linear", args.scale, True)
+            steer = ResidualSteerer(cm, tied, "root")  # the policies' schedule (tied: true)
+            for seconds in (0.0, 0.5, 1.0, 2.0):  # 0: no push, the control
+                spinning = spin_after_push(cm, held, steer, round(seconds * cm.fps), 7 * 30)
+                emit({"bench": "spin_after_push", "model": name, "push_s": seconds,
+                      "push": "yaw residual +1 (the box edge)", "schedule": tied.to_dict(),
+                      "starts": takes, "futures": len(held), "threshold_deg_s": SPIN_DEG_S,
+                      **{f"spinning_{t}s": round(float(spinning[:, t * 30 - 1].float().mean()), 3)
+                         for t in (1, 3, 7)},
+                      "hardware": hardware()}, args.out)  # fmt: skip
 
 
 if __name__ == "__main__":
