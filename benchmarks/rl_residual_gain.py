@@ -27,6 +27,7 @@ import math
 
 import torch
 from common import emit, hardware  # noqa: I001  (benchmarks/common.py puts the repo on the path)
+from rl_joystick_study import SPIN_DEG_S  # one threshold for "spinning" in both benchmarks
 
 import minimdm
 from minimdm.amdm import evaluation
@@ -53,10 +54,6 @@ def level_gains(cm: Sampler, starts: torch.Tensor, push: float = 0.5) -> dict[in
             row.append(float((pushed - free)[:, steer.idx[f]].mean()) / push)
         out[level] = row
     return out
-
-
-SPIN_DEG_S = 180.0
-"""Turning faster than this (degrees per second, over half a second) is spinning."""
 
 
 @torch.no_grad()
