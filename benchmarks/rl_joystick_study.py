@@ -80,6 +80,7 @@ def main() -> None:
                     "total_steps",
                     "max_turn_rate",
                     "action_penalty",
+                    "max_yaw_rate",
                 )
                 if k in meta["config"]
             },

@@ -14,15 +14,21 @@ at the box edge (+1) for 0.5, 1 or 2 s through that schedule, from frame 20 of t
 walk and run takes; then the model runs on alone for 7 s. It reports the share of characters
 still spinning (heading turning faster than 180 degrees per second over half a second, as
 ``benchmarks/rl_joystick_study.py`` counts) 1, 3 and 7 s after the push. A base model that
-keeps spinning on its own hands a policy a trap that no later action undoes quickly.
+keeps spinning on its own hands a policy a trap that no later action undoes quickly. With
+``--max-yaw-rate L`` it measures the same pushes again behind the steerer's turn governor
+(:class:`~minimdm.rl.env.ResidualSteerer`'s ``max_yaw_rate``), both in the same run, and
+reports how far each push turned the character.
 
     python benchmarks/rl_residual_gain.py amdm amdm_halting --spin \
+        --out benchmarks/results/rl_residual_gain.jsonl
+    python benchmarks/rl_residual_gain.py amdm --spin --max-yaw-rate 120 \
         --out benchmarks/results/rl_residual_gain.jsonl
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 
 import torch
@@ -61,7 +67,8 @@ def spin_after_push(
     cm: Sampler, starts: torch.Tensor, steer: ResidualSteerer, push_frames: int, after: int
 ) -> torch.Tensor:
     """(B, after) whether each character spins at each frame after a full yaw push held for
-    ``push_frames`` frames, the model then running on with zero residuals."""
+    ``push_frames`` frames, the model then running on with zero residuals; and (B,) the
+    degrees each turned during the push."""
     a = torch.zeros(len(starts), len(FEATURES))
     a[:, FEATURES.index("yaw")] = 1.0
     yaw_col, gen, x = cm.layout.yaw_rate.start, torch.Generator().manual_seed(0), starts
@@ -69,11 +76,11 @@ def spin_after_push(
     for f in range(push_frames + after):
         x = steer(x, a if f < push_frames else torch.zeros_like(a), gen)
         rates.append(cm.denormalize(x)[:, yaw_col])  # radians per frame
-    deg_s = torch.stack(rates[push_frames:], 1) * cm.fps * 180 / math.pi
+    deg_s = torch.stack(rates, 1) * cm.fps * 180 / math.pi
     smooth = torch.nn.functional.avg_pool1d(
-        deg_s[:, None], 15, 1, padding=7, count_include_pad=False
+        deg_s[:, push_frames:, None].transpose(1, 2), 15, 1, padding=7, count_include_pad=False
     )
-    return smooth[:, 0].abs() > SPIN_DEG_S
+    return smooth[:, 0].abs() > SPIN_DEG_S, deg_s[:, :push_frames].sum(1) / cm.fps
 
 
 def main() -> None:
@@ -82,6 +89,12 @@ def main() -> None:
     p.add_argument("--levels", type=int, default=10, help="the schedule's noisiest levels")
     p.add_argument("--scale", type=float, default=2.0, help="the schedule's w at the top")
     p.add_argument("--spin", action="store_true", help="also: does it come back from a push?")
+    p.add_argument(
+        "--max-yaw-rate",
+        type=float,
+        default=None,
+        help="--spin behind the turn governor at this many degrees per second",
+    )
     p.add_argument("--out", default=None, help="append the lines to this .jsonl file")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -105,11 +118,15 @@ def main() -> None:
                 torch.stack([evaluation.initial_state(ck, n, 20).features for n in takes])
             ).repeat(4, 1)  # 4 futures per take
             tied = ResidualSchedule.top(cm.schedule.T, args.levels, "linear", args.scale, True)
-            steer = ResidualSteerer(cm, tied, "root")  # the policies' schedule (tied: true)
-            for seconds in (0.0, 0.5, 1.0, 2.0):  # 0: no push, the control
-                spinning = spin_after_push(cm, held, steer, round(seconds * cm.fps), 7 * 30)
+            # the policies' schedule (tied: true), then behind the governor if asked
+            governors = [None] + ([args.max_yaw_rate] if args.max_yaw_rate else [])
+            for governor, seconds in itertools.product(governors, (0.0, 0.5, 1.0, 2.0)):
+                steer = ResidualSteerer(cm, tied, "root", governor)  # 0 s: no push, the control
+                spinning, turned = spin_after_push(cm, held, steer, round(seconds * cm.fps), 7 * 30)
                 emit({"bench": "spin_after_push", "model": name, "push_s": seconds,
                       "push": "yaw residual +1 (the box edge)", "schedule": tied.to_dict(),
+                      "max_yaw_rate": governor,
+                      "turned_deg": round(float(turned.mean()), 1) if seconds else 0.0,
                       "starts": takes, "futures": len(held), "threshold_deg_s": SPIN_DEG_S,
                       **{f"spinning_{t}s": round(float(spinning[:, t * 30 - 1].float().mean()), 3)
                          for t in (1, 3, 7)},

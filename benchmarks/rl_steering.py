@@ -87,8 +87,9 @@ def backward_share(features: torch.Tensor, fps: float, threshold: float = 0.1) -
 
 
 def quality(pos: torch.Tensor, feats: torch.Tensor, lengths, skeleton, offsets, fps) -> dict:
-    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2), backward share, averaged over the
-    characters, each over its first ``lengths[i]`` frames."""
+    """FS (cm/frame), Bone.Err (cm), Jnt.Accel (cm/frame^2), backward share and the root's
+    planar speed (m/s), averaged over the characters, each over its first ``lengths[i]``
+    frames."""
     ref = metrics.skeleton_bone_lengths(skeleton.offsets, skeleton.parents)
     rows = []
     for i, n in enumerate(lengths):
@@ -100,13 +101,11 @@ def quality(pos: torch.Tensor, feats: torch.Tensor, lengths, skeleton, offsets, 
                 metrics.bone_length_error(p, skeleton.parents, ref),
                 metrics.joint_acceleration(p),
                 backward_share(feats[i, :n], fps),
+                float((p[0, 1:, 0, :2] - p[0, :-1, 0, :2]).norm(dim=-1).mean()) * fps,
             ]
         )
-    return dict(
-        zip(
-            ("FS", "Bone.Err", "Jnt.Accel", "backward"), np.mean(rows, axis=0).tolist(), strict=True
-        )
-    )
+    keys = ("FS", "Bone.Err", "Jnt.Accel", "backward", "speed_mps")
+    return dict(zip(keys, np.mean(rows, axis=0).tolist(), strict=True))
 
 
 def summarize(bench: str, method: str, per_seed: list[dict], extra: dict | None = None) -> None:

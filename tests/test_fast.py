@@ -222,6 +222,29 @@ def test_bad_inputs_are_refused_by_name(built, call, match):
         call(FastFrame(data), state)
 
 
+def test_the_turn_governor_runs_in_the_exported_policy_graph():
+    """A policy graph behind the residual's turn governor (max_yaw_rate), pushing left at
+    full yaw on frames that turn at -4 to +4 standard deviations of the yaw rate (up to about
+    220 degrees per second), where the governor fades the push out: ONNX Runtime gives the
+    eager step's frame."""
+    from minimdm.rl.env import ResidualSteerer
+
+    graph = frame_graph("rl_joystick")
+    s = graph.steering
+    s.steerer = ResidualSteerer(s.cm, s.steerer.schedule, s.steerer.features, 120.0)
+    push = torch.tensor([0.3, 0.0, 1.0])  # forward, left, yaw: a full turn to the left
+    s.policy.act = lambda obs, deterministic=True: obs[:, :3] * 0 + push  # a fixed policy
+    fast = FastFrame(export_onnx(graph))
+    state, extra = _inputs(graph, batch=6)
+    state[:, s.cm.layout.yaw_rate.start] = torch.tensor([-4.0, -2.5, -1.0, 1.0, 2.5, 4.0])
+    eager = graph.frame(state, torch.Generator().manual_seed(7), *extra.values())
+    out = fast(state, torch.Generator().manual_seed(7), **extra)
+    assert (out - eager).abs().max().item() < TOL
+    governed = s.steerer.governed(state, push.expand(6, 3))
+    assert governed[:3, 2].tolist() == [1.0, 1.0, 1.0]  # turning right or slowly: whole
+    assert governed[4:, 2].tolist() == [0.0, 0.0]  # turning left past 120 degrees/s: none
+
+
 def test_policy_frame_needs_its_task(built):
     graph, data = built["rl_joystick"]
     state, _ = _inputs(graph, batch=2)

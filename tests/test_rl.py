@@ -26,8 +26,8 @@ from minimdm.rl import (
     load_steering,
     residual_hook,
 )
-from minimdm.rl.env import LatentSteerer, ResidualSteerer
-from minimdm.rl.train import RLConfig, build_env, corpus_starts
+from minimdm.rl.env import LatentSteerer, ResidualSteerer, make_steerer
+from minimdm.rl.train import RLConfig, build_env, corpus_starts, make_config_steerer
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -174,6 +174,28 @@ def test_a_queue_of_targets_appears_in_order_then_random_ones():
     task.step(ch, ch.xy)
     d = (task.target - ch.xy).norm(dim=1)
     assert ((d >= task.min_distance - 1e-5) & (d <= task.region + 1e-5)).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(speed=st.floats(0.0, 4.0), cap=st.floats(0.5, 3.0))
+def test_target_progress_pays_only_up_to_max_progress(speed, cap):
+    """Walking straight at a far target at ``speed`` m/s: without max_progress the reward
+    grows with the speed; with it the progress term grows up to cap and falls beyond it, as
+    fast as it grew (walking at cap pays best)."""
+    rewards = {}
+    for limit in (None, cap):
+        task = TargetTask(max_progress=limit)
+        task.setup(1, torch.Generator().manual_seed(0))
+        task.set_targets(torch.tensor([[8.0, 0.0]]))
+        prev = torch.zeros(1, 2)
+        ch = _chars([[speed / 30, 0.0]])  # one frame at 30 fps, facing the target
+        reward, _, _ = task.step(ch, prev)
+        distance = task.w_distance * math.exp(-0.5 * (8.0 - speed / 30))
+        rewards[limit] = float(reward[0]) - distance
+    assert rewards[None] == pytest.approx(speed, rel=1e-3, abs=1e-3)
+    assert rewards[cap] == pytest.approx(cap - abs(speed - cap), rel=1e-3, abs=1e-3)
+    with pytest.raises(ValueError, match="max_progress"):
+        TargetTask(max_progress=0.0)
 
 
 def test_target_observation_is_in_the_heading_frame():
@@ -345,6 +367,62 @@ def test_a_spin_ends_the_episode_when_max_turn_rate_is_set(base, starts):
         SteeringVecEnv(cm, steer, JoystickTask(), starts, 4, max_turn_rate=0.0)
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    rate=st.floats(-400.0, 400.0),  # the current frame's yaw rate, degrees per second
+    action=st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3),
+)
+def test_the_turn_governor_fades_only_a_yaw_push_that_turns_faster(base, rate, action):
+    """max_yaw_rate: a yaw residual in the direction of the turn passes whole below 3/4 of the
+    limit and falls linearly to nothing at the limit and past it; a push against the turn, and
+    the velocity residuals, pass unchanged."""
+    cm, limit = Sampler.load(base), 120.0
+    steer = ResidualSteerer(cm, ResidualSchedule.top(20, 10, tied=True), "root", limit)
+    feats = cm.denormalize(torch.zeros(1, cm.dim))
+    feats[0, cm.layout.yaw_rate.start] = math.radians(rate) / cm.fps
+    a = torch.tensor([action], dtype=torch.float32)
+    out = steer.governed(cm.normalize(feats), a)
+    torch.testing.assert_close(out[:, :2], a[:, :2])
+    yaw = float(a[0, 2])
+    along = (1.0 if yaw > 0 else -1.0 if yaw < 0 else 0.0) * rate
+    room = min(max((limit - along) / (limit / 4), 0.0), 1.0)
+    assert math.isclose(float(out[0, 2]), yaw * room, rel_tol=1e-4, abs_tol=1e-5)
+    if abs(rate) < 0.75 * limit or along < 0:  # within the corpus's turning, or against it
+        assert math.isclose(float(out[0, 2]), yaw, rel_tol=1e-4, abs_tol=1e-5)
+    if along >= limit:  # turning this fast already: no further push that way
+        assert float(out[0, 2]) == 0.0
+
+
+def test_the_turn_governor_keeps_a_held_yaw_push_from_spinning_the_character(base):
+    """A full yaw push held for two seconds: without the governor every character turns
+    faster and faster (the base model keeps a turn going by itself, past 500 degrees per
+    second); with max_yaw_rate 120 most stay within the corpus's turning (their half-second
+    average under 240 degrees per second, about the corpus's 99th percentile: the model may
+    still carry a turn on past the limit by itself, so not all) and each still turns round."""
+    cm = Sampler.load(base)
+    starts = cm.normalize(corpus_starts(base)[::3000][:8])
+    sched = ResidualSchedule.top(20, 10, tied=True, scale=2.0)
+    turned, fastest = {}, {}
+    for limit in (None, 120.0):
+        steer = ResidualSteerer(cm, sched, "root", limit)
+        assert make_steerer(cm, steer.to_dict()).max_yaw_rate == limit  # a checkpoint keeps it
+        x, g, rates = starts, torch.Generator().manual_seed(0), []
+        a = torch.tensor([[0.0, 0.0, 1.0]]).expand(len(starts), 3)
+        for _ in range(60):
+            x = steer(x, a, g)
+            rates.append(cm.denormalize(x)[:, cm.layout.yaw_rate.start] * cm.fps)
+        deg_s = torch.rad2deg(torch.stack(rates, 1))  # (8, 60)
+        turned[limit] = float(deg_s.mean(1).min()) * 2  # degrees in 2 s, the least of the 8
+        fastest[limit] = torch.nn.functional.avg_pool1d(deg_s[:, None], 15, 1)[:, 0].amax(1)
+    assert (fastest[None] > 500).all() and fastest[120.0].median() < 240, fastest
+    assert (fastest[120.0] < fastest[None]).all(), fastest
+    assert turned[120.0] > 120, turned
+    with pytest.raises(ValueError, match="max_yaw_rate"):
+        ResidualSteerer(cm, sched, "root", 0.0)
+    with pytest.raises(ValueError, match="max_yaw_rate"):
+        RLConfig(max_yaw_rate=-5.0)
+
+
 def test_env_refuses_actions_of_the_wrong_shape_or_not_finite(base, starts):
     env = build_env(
         RLConfig(task="target", num_envs=3, batch_size=96, features="root", n_levels=4), base
@@ -398,6 +476,8 @@ def test_latent_steerer_decodes_the_action_as_mvae_latent():
     cond = torch.randn(5, cm.dim)
     a = torch.rand(5, s.action_dim) * 2 - 1
     assert torch.allclose(s(cond, a, torch.Generator()), cm.net.decode(2 * a, cond))
+    with pytest.raises(ValueError, match="max_yaw_rate governs an A-MDM residual"):
+        make_config_steerer(cm, RLConfig(base="mvae", max_yaw_rate=120.0))
 
 
 # -- PPO and the policy checkpoint ----------------------------------------------------------

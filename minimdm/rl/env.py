@@ -93,11 +93,29 @@ class ResidualSteerer(Steerer):
     ``features`` of the K steps of ``schedule``, weighted by :math:`w^t` (times its scale), in
     standard deviations of the normalized frame's features, whether the base model denoises
     the frame or its change from the previous one (then they are divided by the change's scale
-    k on their way into the chain, :func:`~minimdm.rl.residual.residual_hook`'s ``units``)."""
+    k on their way into the chain, :func:`~minimdm.rl.residual.residual_hook`'s ``units``).
+
+    ``max_yaw_rate`` (degrees per second, None: off) is a turn governor on the yaw residual: a
+    push that would turn the character faster fades out as the current frame's yaw rate
+    approaches the limit L in the push's direction (linearly from 3/4 L to nothing at L and
+    past it); pushes against the turn pass whole. A base model that denoises the change from
+    the previous frame keeps a turn that was pushed past about 200 degrees per second going by
+    itself, and then its own yaw residual hardly stops it (``benchmarks/rl_residual_gain.py
+    --spin``); the governor keeps the residual from pushing it there. The model can still carry
+    a turn past the limit by itself (a governor that also pushed back past the limit was tried
+    and did worse: chapter 7). It is part of the steerer, so the policy, the baselines and the
+    exported graph all run behind it.
+    """
 
     kind = "residual"
 
-    def __init__(self, cm: Sampler, schedule: ResidualSchedule, features: str = "all"):
+    def __init__(
+        self,
+        cm: Sampler,
+        schedule: ResidualSchedule,
+        features: str = "all",
+        max_yaw_rate: float | None = None,
+    ):
         if not cm.is_diffusion:
             raise ValueError(
                 f"residual steering needs an A-MDM denoiser, got {type(cm.net).__name__}"
@@ -113,18 +131,46 @@ class ResidualSteerer(Steerer):
         self.chain = cm.settings.levels(cm.schedule.T)  # the levels of a frame's chain
         k = cm.net.delta_k if cm.net.is_delta else None  # a delta model's scale of the change
         self.units = None if k is None else 1 / (k if self.idx is None else k[self.idx])
+        self.max_yaw_rate = None
+        if max_yaw_rate is not None:
+            self.max_yaw_rate = check_number("max_yaw_rate", max_yaw_rate, low=0.0, low_open=True)
+            if cm.layout is None or cm.normalizer is None:
+                raise ValueError("max_yaw_rate needs a base model with a feature layout")
+            col = cm.layout.yaw_rate.start
+            if self.idx is not None and col not in self.idx:
+                raise ValueError(f"max_yaw_rate needs a residual on the yaw rate ({features!r})")
+            self._yaw_col = col
+            self._yaw_at = torch.zeros(self.per_step)  # 1 where the residual is the yaw rate's
+            self._yaw_at[col if self.idx is None else self.idx.index(col)] = 1.0
+
+    def governed(self, cond: Tensor, actions: Tensor) -> Tensor:
+        """``actions`` (N, A) with the yaw residual faded out near ``max_yaw_rate``, given the
+        current frames ``cond`` (N, D) normalized (unchanged when the governor is off)."""
+        if self.max_yaw_rate is None:
+            return actions
+        limit = math.radians(self.max_yaw_rate) / self.cm.fps  # radians per frame
+        rate = self.cm.denormalize(cond)[:, self._yaw_col].to(actions.dtype)  # (N,)
+        a = actions.unflatten(-1, (-1, self.per_step))  # (N, K or 1, F)
+        at = self._yaw_at.to(a)
+        yaw = (a * at).sum(-1)  # (N, K or 1)
+        room = ((limit - torch.sign(yaw) * rate[:, None]) / (limit / 4)).clamp(0.0, 1.0)
+        return (a + at * (yaw * (room - 1))[..., None]).flatten(-2)  # (N, A)
 
     def __call__(self, cond, actions, generator):
+        actions = self.governed(cond, torch.as_tensor(actions))
         hook = residual_hook(self.schedule, actions, self.chain, self.idx, self.units)
         return self.cm.frame(cond, generator, hook=hook)
 
     def to_dict(self):
-        return {
+        spec = {
             "kind": self.kind,
             "schedule": self.schedule.to_dict(),
             "features": self.features,
             "steps": self.cm.settings.steps,
         }
+        if self.max_yaw_rate is not None:  # policies trained without it load as before
+            spec["max_yaw_rate"] = self.max_yaw_rate
+        return spec
 
 
 class LatentSteerer(Steerer):
@@ -151,7 +197,12 @@ def make_steerer(cm: Sampler, spec: dict[str, Any]) -> Steerer:
     """A steerer from :meth:`Steerer.to_dict`'s output (as stored in a policy checkpoint)."""
     kind = spec.get("kind")
     if kind == "residual":
-        return ResidualSteerer(cm, ResidualSchedule.from_dict(spec["schedule"]), spec["features"])
+        return ResidualSteerer(
+            cm,
+            ResidualSchedule.from_dict(spec["schedule"]),
+            spec["features"],
+            spec.get("max_yaw_rate"),
+        )
     if kind == "latent":
         return LatentSteerer(cm, spec.get("scale", 2.0))
     raise ValueError(f"steering kind must be 'residual' or 'latent', got {kind!r}")

@@ -86,6 +86,10 @@ class RLConfig:
     """End an episode (terminated: no more reward) when the character spins: its yaw rate,
     averaged over about half a second, exceeds this many degrees per second (see
     :class:`~minimdm.rl.env.SteeringVecEnv`). None: never."""
+    max_yaw_rate: float | None = None
+    """A-MDM: the residual's turn governor, degrees per second (see
+    :class:`~minimdm.rl.env.ResidualSteerer`): the yaw residual fades out as the character
+    turns this fast in its direction. None: off."""
     observe: str = "frame"
     """What the policy sees besides the task: the whole current ``frame`` or only its ``root``
     velocity and yaw rate (see :class:`~minimdm.rl.env.SteeringVecEnv`)."""
@@ -119,8 +123,9 @@ class RLConfig:
             check_int(name, getattr(self, name), low=1)  # 2.7 is refused, not rounded down
         for name in ("action_penalty", "motion_penalty"):
             check_number(name, getattr(self, name), low=0.0)
-        if self.max_turn_rate is not None:
-            check_number("max_turn_rate", self.max_turn_rate, low=0.0, low_open=True)
+        for name in ("max_turn_rate", "max_yaw_rate"):
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), low=0.0, low_open=True)
         for name in ("residual_scale", "latent_scale", "clip_range", "max_grad_norm"):
             check_number(name, getattr(self, name), low=0.0, low_open=True)
         check_number("lr", self.lr, low=0.0, low_open=True)
@@ -188,7 +193,9 @@ def make_config_steerer(cm: Sampler, config: RLConfig) -> Steerer:
             sched = ResidualSchedule.top(
                 T, config.n_levels, config.anneal, config.residual_scale, config.tied
             )
-        return ResidualSteerer(cm, sched, config.features)
+        return ResidualSteerer(cm, sched, config.features, config.max_yaw_rate)
+    if config.max_yaw_rate is not None:
+        raise ValueError("max_yaw_rate governs an A-MDM residual; an MVAE's latent has no yaw")
     return LatentSteerer(cm, config.latent_scale)
 
 
