@@ -368,6 +368,18 @@ def test_every_shipped_checkpoint_records_its_command():
         assert command and command.split()[0] in ("minimdm", "python"), meta
 
 
+def test_every_shipped_checkpoints_readable_metadata_is_its_weights_files_own():
+    """The loader reads the metadata inside the weights file and warns when model.json beside it
+    differs: a hand edit of one copy alone (say, of the recorded command) would not be seen."""
+    import warnings
+
+    for meta in sorted((ROOT / "checkpoints").glob("*/model.json")):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            ck = load_checkpoint(meta.parent)
+        assert ck.metadata == json.loads(meta.read_text()), meta
+
+
 def test_the_readme_and_configs_show_how_to_remake_a_shipped_checkpoint():
     """Each command that writes a shipped checkpoint says --ship; no other claims to."""
     readme = (ROOT / "README.md").read_text()

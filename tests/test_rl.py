@@ -577,7 +577,7 @@ def test_shipped_policies_load_with_their_base_model_and_record_their_command(na
     s = load_steering(name)
     meta = s.checkpoint.metadata
     assert meta["command"].startswith(f"minimdm rl configs/{name}.yaml")
-    assert meta["train_seconds"] < 30 * 60  # the book's limit for one training command
+    assert meta["train_seconds"] < 60 * 60  # issue 31's limit for one run on 2 cores
     assert s.checkpoint.paths.weights.stat().st_size < 5 * 2**20
     obs = torch.zeros(3, s.policy.obs_dim)
     assert s.policy.act(obs).shape == (3, s.steerer.action_dim)
