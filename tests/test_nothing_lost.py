@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -371,8 +372,6 @@ def test_every_shipped_checkpoint_records_its_command():
 def test_every_shipped_checkpoints_readable_metadata_is_its_weights_files_own():
     """The loader reads the metadata inside the weights file and warns when model.json beside it
     differs: a hand edit of one copy alone (say, of the recorded command) would not be seen."""
-    import warnings
-
     for meta in sorted((ROOT / "checkpoints").glob("*/model.json")):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
