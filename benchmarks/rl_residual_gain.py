@@ -19,9 +19,17 @@ keeps spinning on its own hands a policy a trap that no later action undoes quic
 (:class:`~minimdm.rl.env.ResidualSteerer`'s ``max_yaw_rate``), both in the same run, and
 reports how far each push turned the character.
 
+``--counter`` asks whether the residual can stop such a spin, and whether the spin stays
+stopped: after the 1 s push, the yaw residual is held against the turn (at the box edge, the
+sign opposite the current yaw rate) for 1 s, with the forward residual at 0, +1 or -1, and then
+the model runs on alone for 5 s. It reports the share spinning at the end of the counter-push
+and 1 and 5 s after it. Models are shipped names or checkpoint paths (a study's run).
+
     python benchmarks/rl_residual_gain.py amdm amdm_halting --spin \
         --out benchmarks/results/rl_residual_gain.jsonl
     python benchmarks/rl_residual_gain.py amdm --spin --max-yaw-rate 120 \
+        --out benchmarks/results/rl_residual_gain.jsonl
+    python benchmarks/rl_residual_gain.py amdm --counter \
         --out benchmarks/results/rl_residual_gain.jsonl
 """
 
@@ -38,6 +46,7 @@ from rl_joystick_study import SPIN_DEG_S  # one threshold for "spinning" in both
 import minimdm
 from minimdm.amdm import evaluation
 from minimdm.amdm.sampling import Sampler
+from minimdm.checkpoint import load_checkpoint
 from minimdm.rl.env import ResidualSteerer
 from minimdm.rl.residual import ResidualSchedule
 from minimdm.rl.train import corpus_starts
@@ -83,6 +92,42 @@ def spin_after_push(
     return smooth[:, 0].abs() > SPIN_DEG_S, deg_s[:, :push_frames].sum(1) / cm.fps
 
 
+@torch.no_grad()
+def counter_after_spin(
+    cm: Sampler, starts: torch.Tensor, steer: ResidualSteerer, forward: float
+) -> torch.Tensor:
+    """(B, 7 s of frames) whether each character spins, frame by frame, over a full yaw push
+    held for 1 s (as :func:`spin_after_push`), 1 s of counter-push and 5 s alone. The counter-push
+    holds the yaw residual at the box edge against the current yaw rate and the forward
+    residual at ``forward``."""
+    yaw, fps = FEATURES.index("yaw"), round(cm.fps)
+    yaw_col, gen, x = cm.layout.yaw_rate.start, torch.Generator().manual_seed(0), starts
+    rates = []
+    for f in range(fps + 6 * fps):
+        a = torch.zeros(len(starts), len(FEATURES))
+        if f < fps:  # the push that starts the spin
+            a[:, yaw] = 1.0
+        elif f < 2 * fps:  # against it
+            a[:, yaw] = -torch.sign(cm.denormalize(x)[:, yaw_col])
+            a[:, FEATURES.index("forward")] = forward
+        x = steer(x, a, gen)
+        rates.append(cm.denormalize(x)[:, yaw_col])
+    deg_s = (torch.stack(rates, 1) * fps * 180 / math.pi).abs()
+    smooth = torch.nn.functional.avg_pool1d(
+        deg_s[:, :, None].transpose(1, 2), 15, 1, padding=7, count_include_pad=False
+    )
+    return smooth[:, 0] > SPIN_DEG_S
+
+
+def load(name: str):
+    """A shipped checkpoint by name, or one at a path."""
+    return (
+        load_checkpoint(name)
+        if ("/" in name or name.endswith(".json"))
+        else minimdm.pretrained(name)
+    )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("models", nargs="+", help="base A-MDM checkpoints, e.g. amdm amdm_halting")
@@ -95,11 +140,14 @@ def main() -> None:
         default=None,
         help="--spin behind the turn governor at this many degrees per second",
     )
+    p.add_argument(
+        "--counter", action="store_true", help="also: does a counter-push stop a spin, for good?"
+    )
     p.add_argument("--out", default=None, help="append the lines to this .jsonl file")
     args = p.parse_args()
     torch.set_num_threads(1)
     for name in args.models:
-        ck = minimdm.pretrained(name)
+        ck = load(name)
         cm = Sampler.load(ck)
         starts = cm.normalize(corpus_starts(ck)[::400][:64])
         gains = level_gains(cm, starts)
@@ -111,13 +159,32 @@ def main() -> None:
               "schedule": sched.to_dict(),
               "authority": dict(zip(FEATURES, [round(a, 3) for a in authority], strict=True)),
               "hardware": hardware()}, args.out)  # fmt: skip
-        if args.spin:
+        if args.spin or args.counter:
             test = evaluation.checkpoint_clips(ck, split="test")
             takes = [c.name for c in test if c.labels["content"] in ("walk", "run")]
             held = cm.normalize(
                 torch.stack([evaluation.initial_state(ck, n, 20).features for n in takes])
             ).repeat(4, 1)  # 4 futures per take
             tied = ResidualSchedule.top(cm.schedule.T, args.levels, "linear", args.scale, True)
+        if args.counter:
+            steer = ResidualSteerer(cm, tied, "root")
+            for forward in (0.0, 1.0, -1.0):
+                spinning = counter_after_spin(cm, held, steer, forward).float()
+                fps = round(cm.fps)
+                at = {  # label -> frame index
+                    "spinning_after_push": fps - 1,
+                    "spinning_end_of_counter": 2 * fps - 1,
+                    "spinning_1s_after": 3 * fps - 1,
+                    "spinning_5s_after": 7 * fps - 1,
+                }
+                emit({"bench": "counter_after_spin", "model": name,
+                      "push": "yaw residual +1 (the box edge) for 1 s",
+                      "counter": "yaw residual at the box edge against the yaw rate for 1 s",
+                      "forward_during_counter": forward, "schedule": tied.to_dict(),
+                      "starts": takes, "futures": len(held), "threshold_deg_s": SPIN_DEG_S,
+                      **{k: round(float(spinning[:, f].mean()), 3) for k, f in at.items()},
+                      "hardware": hardware()}, args.out)  # fmt: skip
+        if args.spin:
             # the policies' schedule (tied: true), then behind the governor if asked
             governors = [None] + ([args.max_yaw_rate] if args.max_yaw_rate else [])
             for governor, seconds in itertools.product(governors, (0.0, 0.5, 1.0, 2.0)):

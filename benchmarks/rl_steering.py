@@ -304,15 +304,21 @@ def commands(n: int, frames: int, seed: int = 0, speed=(0.5, 2.5)):
     )
 
 
-def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0):
+def proportional_joystick(
+    steering, k_heading: float = 2.0, k_speed: float = 1.0, k_turn: float = 0.0
+):
     """A hand-written controller on the joystick policy's own actions, a baseline: the yaw-rate
     residual turns towards the command in proportion to the heading error (radians), the
     forward-velocity residual pushes the forward speed towards the commanded one (times the
     cosine of the error: no push while facing away). The gains are the best of (2, 1), (5, 2),
-    (10, 3) on other commands; the lateral residual stays 0."""
+    (10, 3) on other commands; the lateral residual stays 0. ``k_turn`` > 0 makes it a PD
+    controller: the yaw residual also pushes against the current frame's yaw rate (radians per
+    second) with that gain, to damp a turn (``benchmarks/rl_joystick_study.py --controllers``
+    ranks such gains; the benchmark's baseline is the proportional one)."""
     features = steering.steerer.features
     if features != "root":
         raise ValueError(f"the controller needs root residuals, got features={features!r}")
+    yaw_col = steering.cm.layout.yaw_rate.start
 
     def act(env) -> torch.Tensor:
         task, ch = env.task, env.ch
@@ -321,6 +327,9 @@ def proportional_joystick(steering, k_heading: float = 2.0, k_speed: float = 1.0
         forward = (ch.velocity * facing).sum(-1)
         a = torch.zeros(env.num_envs, env.single_action_space.shape[0])
         a[:, 2] = k_heading * err  # (forward, left, yaw)
+        if k_turn:
+            turn = steering.cm.denormalize(env.x)[:, yaw_col].float().cpu() * steering.cm.fps
+            a[:, 2] -= k_turn * turn
         a[:, 0] = k_speed * (task.goal_speed * torch.cos(err).clamp(min=0) - forward)
         return a
 
