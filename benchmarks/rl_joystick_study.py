@@ -7,8 +7,9 @@ the two. Appends one row per policy to ``benchmarks/results/rl_study.jsonl``.
 
 ``--controllers`` scores hand-written controllers instead, on the same commands, starts and
 seeds: the benchmark's proportional controller and PD controllers (``k_turn``: a yaw residual
-also against the current yaw rate), each behind the policies' residual schedule and behind
-schedules with more authority over the chain (more levels, a larger scale). It asks whether
+also against the current yaw rate), each behind the 10-level residual schedule the policies had
+before and behind schedules with more authority over the chain (more levels, a larger scale);
+the steerers have no turn governor. It asks whether
 any controller on these residuals settles every command, or whether the misses are the base
 model's (its spins). One row per controller and schedule.
 
@@ -17,7 +18,7 @@ model's (its spins). One row per controller and schedule.
     python benchmarks/rl_joystick_study.py --controllers --base runs/study/r14_x0_lvl_draw4_40k
 
 ``--base`` puts the controllers on another base model (a checkpoint path, e.g. a run of
-chapter 3's study), with the policies' schedule only.
+chapter 3's study), with the 10-level schedule only.
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ PROTOCOL_NOTE = "last 60 frames of each 120-frame command"
 CONTROLLERS = [(2.0, 0.0, 1.0), (2.0, 0.5, 1.0), (1.0, 0.3, 1.0), (3.0, 1.0, 2.0)]
 """(k_heading, k_turn, k_speed): the benchmark's proportional controller, then PD ones."""
 SCHEDULES = [(10, 2.0), (10, 3.0), (15, 2.0), (10, 4.0)]
-"""(levels, scale) of the tied linear root residual: the policies' own first."""
+"""(levels, scale) of the tied linear root residual: the 10 levels the policies had before
+issue 31's fix first (the shipped joystick policy now uses 15, behind a governor)."""
 
 
 def turn_seconds(he: torch.Tensor, fps: float, least: float = 45.0) -> torch.Tensor:
@@ -88,7 +90,8 @@ def score(pol, starts, heading, speed, controller=None) -> list[dict]:
         seg = torch.stack([he[:, k * 120 + 60 : (k + 1) * 120].mean(1) for k in range(4)], 1)
         sp = m.info["speed_error"].abs()[:, (torch.arange(F) % 120) >= 60]
         # spinning: the heading turns faster than SPIN_DEG_S, averaged over half a second
-        rate = wrap_angle(torch.diff(m.heading, dim=1), include_pi=False) * 30 * 180 / math.pi
+        rate = wrap_angle(torch.diff(m.heading, dim=1), include_pi=False)
+        rate = rate * pol.cm.fps * 180 / math.pi
         turn = torch.nn.functional.avg_pool1d(rate[:, None], 15, 1)[:, 0]
         per_seed.append(
             {
@@ -136,7 +139,8 @@ def main() -> None:
     held = [c.name for c in test if c.labels["content"] in B.START_CONTENTS]
     starts = torch.stack([evaluation.initial_state(ck, n, 20).features for n in held])
     heading, speed = B.commands(N, F + 1, B.HELD_OUT_SEED)
-    yaw = corpus_starts(ck)[:, Sampler.load(ck).layout.yaw_rate.start] * 30 * 180 / math.pi
+    base_cm = Sampler.load(ck)
+    yaw = corpus_starts(ck)[:, base_cm.layout.yaw_rate.start] * base_cm.fps * 180 / math.pi
     protocol = {
         # the training frames' own turning, for turn_rate_p99_deg_s
         "corpus_turn_rate_p99_deg_s": round(float(torch.quantile(yaw.abs(), 0.99)), 1),
